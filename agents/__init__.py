@@ -1,0 +1,1 @@
+"""Scripted policies, training, evaluation, benchmarks and the ``probegym`` command line."""

@@ -1,0 +1,1 @@
+"""Data files: MJCF robot models, probe geometry, phantom specification."""

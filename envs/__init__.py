@@ -1,0 +1,1 @@
+"""Gymnasium environments: a MuJoCo robot holding a US probe, coupled to the tissue simulator."""
