@@ -1,0 +1,580 @@
+"""Implicit time integration of the tissue: the paper's linearised backward Euler and Newton.
+
+Modes:
+
+* ``paper``: backward Euler exactly as Tagliabue et al. (2020), eq. (5), after Baraff &
+  Witkin (1998): one linearised solve per step,
+
+      (M (1 + h r_M) + (h r_K + h^2) K) dv = h (f - r_M M v - r_K K v) - h^2 K v,
+
+  with K = d2E/dx2 the stiffness (positive), f the internal plus external force and
+  Rayleigh damping (r_M, r_K). Then v += dv and x += h v. No iteration: large steps or an
+  unconverged linear solve leave residual forces, as in the paper's framework.
+* ``robust``: Newton's method on the step's incremental potential (Kane et al. 2000;
+  Martin et al. 2011)
+
+      E(y) = |y - x - h v|^2_M / (2 h^2) + Psi(y) - f_ext . y + |y - x|^2_D / (2 h),
+      D = r_M M + r_K K(x),
+
+  iterated to a relative residual tolerance with a backtracking (Armijo) line search,
+  element tangents projected to positive semi-definite (so every Newton direction descends),
+  and a failed step retried as two half steps, recursively (automatic subdivision, reported).
+
+``quasi_static=True`` drops inertia and damping: each step seeks static equilibrium with the
+constraints of that step (one linearised solve in ``paper`` mode, Newton in ``robust``).
+
+Constraints are Dirichlet conditions on whole nodes: the fixed set (always) and prescribed
+target positions for the step (the probe's nodes in prescribed-displacement contact).
+Reaction forces at constrained nodes are returned; the force the tissue exerts on whatever
+holds those nodes is their negative.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Protocol
+
+import numba
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from tissue.elasticity import Elasticity, ElasticState
+from tissue.errors import ConfigError
+from tissue.solvers import (
+    ConstrainedSystem,
+    LinearSolver,
+    LinearSolverConfig,
+    LinearSolverKind,
+    SolveReport,
+)
+from tissue.status import SEVERITY, StepStatus, worst
+
+# A node further than this many mesh extents from its rest position means the step blew up.
+_BLOW_UP_EXTENTS = 2.0
+# Armijo sufficient-decrease constant and the smallest line-search step tried.
+_ARMIJO_C = 1e-4
+_MIN_STEP_FRACTION = 2.0**-12
+
+
+class IntegrationMode(str, Enum):
+    """How each implicit step is solved."""
+
+    PAPER = "paper"
+    ROBUST = "robust"
+
+    @classmethod
+    def parse(cls, value: str | IntegrationMode) -> IntegrationMode:
+        try:
+            return cls(value)
+        except ValueError:
+            valid = ", ".join(repr(m.value) for m in cls)
+            raise ConfigError(f"unknown integration mode {value!r}; choose one of {valid}") from None
+
+
+@dataclass(frozen=True)
+class IntegratorConfig:
+    """Settings of the implicit integrator.
+
+    Attributes:
+        mode: ``paper`` (one linearised solve) or ``robust`` (Newton, line search).
+        quasi_static: seek static equilibrium each step (no inertia, no damping).
+        rayleigh_mass: r_M [1/s], mass-proportional damping.
+        rayleigh_stiffness: r_K [s], stiffness-proportional damping.
+        linear_solver: the linear solver; None picks the mode's default (``paper``: CG capped
+            at 25 iterations as the paper; ``robust``: factorisation reused as preconditioner).
+        project_psd: project element tangents to PSD; None means True in ``robust`` and False
+            in ``paper`` (as the paper's framework).
+        newton_tolerance: relative residual at which Newton stops (residual norm over the
+            norm of the forces acting).
+        newton_max_iterations: Newton iterations before a step is declared not converged.
+        max_subdivisions: how many times a failed robust step may be halved (0 disables).
+    """
+
+    mode: IntegrationMode = IntegrationMode.PAPER
+    quasi_static: bool = False
+    rayleigh_mass: float = 0.1
+    rayleigh_stiffness: float = 0.1
+    linear_solver: LinearSolverConfig | None = None
+    project_psd: bool | None = None
+    newton_tolerance: float = 1e-6
+    newton_max_iterations: int = 30
+    max_subdivisions: int = 4
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "mode", IntegrationMode.parse(self.mode))
+        if self.rayleigh_mass < 0 or self.rayleigh_stiffness < 0:
+            raise ConfigError(
+                "Rayleigh damping factors must be >= 0; got rayleigh_mass="
+                f"{self.rayleigh_mass}, rayleigh_stiffness={self.rayleigh_stiffness}"
+            )
+        if not 0 < self.newton_tolerance < 1:
+            raise ConfigError(f"newton_tolerance must lie in (0, 1); got {self.newton_tolerance}")
+        if self.newton_max_iterations < 1:
+            raise ConfigError(f"newton_max_iterations must be >= 1; got {self.newton_max_iterations}")
+        if self.max_subdivisions < 0:
+            raise ConfigError(f"max_subdivisions must be >= 0; got {self.max_subdivisions}")
+        if self.linear_solver is None:
+            default = (
+                LinearSolverConfig(kind=LinearSolverKind.CG)
+                if self.mode is IntegrationMode.PAPER
+                else LinearSolverConfig(kind=LinearSolverKind.REUSE)
+            )
+            object.__setattr__(self, "linear_solver", default)
+        if self.project_psd is None:
+            object.__setattr__(self, "project_psd", self.mode is IntegrationMode.ROBUST)
+
+
+@dataclass(frozen=True)
+class TermEvaluation:
+    """What an extra energy term (penalty contact, a spring) adds to a step.
+
+    Attributes:
+        energy_j: the term's potential energy [J].
+        forces: force on the nodes, -d(energy)/dx [N], shape (node_count, 3).
+        stiffness_rows, stiffness_cols, stiffness_values: d2(energy)/dx2 as COO triplets over
+            dofs (3·node + axis); entries must couple nodes of a common tet so they fall inside
+            the elastic sparsity pattern. Empty arrays for none.
+    """
+
+    energy_j: float
+    forces: NDArray[np.float64]
+    stiffness_rows: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    stiffness_cols: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    stiffness_values: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+
+
+class EnergyTerm(Protocol):
+    """An extra conservative term added to the tissue's potential during a step."""
+
+    def evaluate(self, positions: NDArray[np.float64]) -> TermEvaluation: ...
+
+
+@dataclass
+class StepOutcome:
+    """The result of one integrator step.
+
+    Attributes:
+        status: how the step ended.
+        positions: node positions after the step [m], (node_count, 3) (the start state when
+            the step diverged).
+        velocities: node velocities after the step [m/s], (node_count, 3).
+        reaction_forces: force the constraints apply to the tissue at each node [N],
+            (node_count, 3), zero at free nodes.
+        elastic_energy_j: strain energy after the step [J].
+        newton_iterations: Newton iterations over all substeps (1 per step in paper mode).
+        linear_iterations: CG iterations over all solves.
+        linear_residual: the largest relative residual left by a linear solve.
+        newton_residual: relative Newton residual at the end (0 in paper mode: not measured).
+        subdivisions: how many extra substeps automatic subdivision added.
+        min_volume_ratio: smallest det F over the tets after the step.
+        factorizations: numerical factorisations computed.
+    """
+
+    status: StepStatus
+    positions: NDArray[np.float64]
+    velocities: NDArray[np.float64]
+    reaction_forces: NDArray[np.float64]
+    elastic_energy_j: float
+    newton_iterations: int = 0
+    linear_iterations: int = 0
+    linear_residual: float = 0.0
+    newton_residual: float = 0.0
+    subdivisions: int = 0
+    min_volume_ratio: float = 1.0
+    factorizations: int = 0
+    seconds: float = 0.0
+
+
+@numba.njit(cache=True)
+def _row_products(indptr, indices, data, rows, x):  # pragma: no cover - compiled
+    """(A x)[rows] for a CSR matrix."""
+    out = np.zeros(rows.shape[0])
+    for i in range(rows.shape[0]):
+        row = rows[i]
+        acc = 0.0
+        for k in range(indptr[row], indptr[row + 1]):
+            acc += data[k] * x[indices[k]]
+        out[i] = acc
+    return out
+
+
+class ImplicitIntegrator:
+    """Advances positions and velocities of a tet mesh by one implicit step.
+
+    Args:
+        elasticity: the hyperelastic model (mesh, materials, lumped mass, pattern).
+        config: integrator settings.
+        external_force: constant external nodal force (gravity) [N], (node_count, 3), or None.
+    """
+
+    def __init__(
+        self,
+        elasticity: Elasticity,
+        config: IntegratorConfig,
+        external_force: NDArray[np.float64] | None = None,
+    ) -> None:
+        self.elasticity = elasticity
+        self.config = config
+        self.solver = LinearSolver(config.linear_solver)
+        mass = elasticity.lumped_mass
+        self.mass_dof = np.repeat(mass, 3)
+        self.external_force = external_force
+        rest = elasticity.mesh.nodes
+        self._rest = rest
+        self._blow_up_m = _BLOW_UP_EXTENTS * float(np.max(np.ptp(rest, axis=0)))
+        self._diagonal_positions: NDArray[np.int64] | None = None
+
+    # ------------------------------------------------------------------ public
+
+    def step(
+        self,
+        positions: NDArray[np.float64],
+        velocities: NDArray[np.float64],
+        dt: float,
+        constrained_nodes: NDArray[np.int64],
+        targets: NDArray[np.float64],
+        terms: Sequence[EnergyTerm] = (),
+    ) -> StepOutcome:
+        """Advance one step of ``dt`` [s].
+
+        Args:
+            positions: node positions at the start [m], (node_count, 3).
+            velocities: node velocities at the start [m/s], (node_count, 3).
+            dt: the step [s].
+            constrained_nodes: indices of nodes whose end position is prescribed (fixed nodes
+                included), (k,).
+            targets: their positions at the end of the step [m], (k, 3).
+            terms: extra energy terms (penalty contact) active during the step.
+        """
+        start = time.perf_counter()
+        if self.config.mode is IntegrationMode.PAPER:
+            outcome = self._paper_step(positions, velocities, dt, constrained_nodes, targets, terms)
+        else:
+            outcome = self._robust_step(
+                positions, velocities, dt, constrained_nodes, targets, terms, self.config.max_subdivisions
+            )
+        outcome.seconds = time.perf_counter() - start
+        return outcome
+
+    # ------------------------------------------------------------------ paper
+
+    def _paper_step(self, x, v, h, nodes, targets, terms) -> StepOutcome:
+        cfg = self.config
+        state = self.elasticity.evaluate(x, tangent=True, project_psd=bool(cfg.project_psd))
+        stiffness = self._stiffness_with_terms(state, x, terms)
+        force = state.forces.reshape(-1) + self._term_forces(x, terms)
+        if self.external_force is not None:
+            force = force + self.external_force.reshape(-1)
+        v_flat = v.reshape(-1)
+        k_data = stiffness.data
+        kv = stiffness @ v_flat
+        constrained = self._dof_mask(nodes)
+        values = np.zeros(x.size)
+        dofs = _node_dofs(nodes)
+        if cfg.quasi_static:
+            # K dx = f with dx prescribed at constrained dofs.
+            matrix = sp.csr_matrix((k_data.copy(), stiffness.indices, stiffness.indptr), shape=stiffness.shape)
+            rhs = force
+            values[dofs] = (targets - x[nodes]).reshape(-1)
+        else:
+            m = self.mass_dof
+            a_data = (h * cfg.rayleigh_stiffness + h * h) * k_data
+            a_data[self._diagonal(stiffness)] += (1.0 + h * cfg.rayleigh_mass) * m
+            matrix = sp.csr_matrix((a_data, stiffness.indices, stiffness.indptr), shape=stiffness.shape)
+            rhs = h * (force - cfg.rayleigh_mass * m * v_flat - cfg.rayleigh_stiffness * kv) - h * h * kv
+            values[dofs] = ((targets - x[nodes]) / h - v[nodes]).reshape(-1)
+        original = matrix.data.copy()
+        system = ConstrainedSystem(matrix, rhs, constrained, values)
+        try:
+            solution, report = self.solver.solve(system)
+        except Exception:  # noqa: BLE001 - a failed factorisation is a step failure, not a crash
+            return self._failed(x, v, StepStatus.SOLVER_FAILED)
+        if not np.all(np.isfinite(solution)):
+            return self._failed(x, v, StepStatus.SOLVER_FAILED)
+        # Reactions: what the constraints add so that the constrained rows balance.
+        rows_matrix_times = _row_products(
+            matrix.indptr, matrix.indices, original, dofs.astype(np.int64), solution
+        )
+        reaction = np.zeros(x.size)
+        if cfg.quasi_static:
+            new_x = x + solution.reshape(-1, 3)
+            new_v = np.zeros_like(v)
+            reaction[dofs] = rows_matrix_times - rhs[dofs]
+        else:
+            new_v = v + solution.reshape(-1, 3)
+            new_x = x + h * new_v
+            reaction[dofs] = (rows_matrix_times - rhs[dofs]) / h
+        return self._finish(
+            x, v, new_x, new_v, reaction, report, newton_iterations=1, newton_residual=0.0
+        )
+
+    # ------------------------------------------------------------------ robust
+
+    def _robust_step(self, x, v, h, nodes, targets, terms, subdivisions_left) -> StepOutcome:
+        outcome = self._newton(x, v, h, nodes, targets, terms)
+        if not outcome.status.is_failure or subdivisions_left == 0:
+            return outcome
+        # Retry as two half steps, the prescribed targets interpolated linearly.
+        middle = x[nodes] + 0.5 * (targets - x[nodes])
+        first = self._robust_step(x, v, 0.5 * h, nodes, middle, terms, subdivisions_left - 1)
+        if first.status in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
+            return _merge(outcome, first, first)
+        second = self._robust_step(
+            first.positions, first.velocities, 0.5 * h, nodes, targets, terms, subdivisions_left - 1
+        )
+        merged = _merge(first, second, second)
+        merged.subdivisions += 1
+        return merged if _rank(merged) <= _rank(outcome) else outcome
+
+    def _newton(self, x0, v0, h, nodes, targets, terms) -> StepOutcome:
+        cfg = self.config
+        quasi = cfg.quasi_static
+        m = self.mass_dof
+        x0_flat = x0.reshape(-1)
+        inertia_target = x0_flat + h * v0.reshape(-1)
+        dofs = _node_dofs(nodes)
+        target_flat = targets.reshape(-1)
+        constrained = self._dof_mask(nodes)
+        free = ~constrained
+        external = self.external_force.reshape(-1) if self.external_force is not None else None
+
+        damping: sp.csr_matrix | None = None
+        if not quasi and cfg.rayleigh_stiffness > 0:
+            start_state = self.elasticity.evaluate(x0, tangent=True, project_psd=True)
+            damping = start_state.stiffness
+
+        def potential(y_flat: NDArray[np.float64]) -> tuple[float, ElasticState]:
+            y = y_flat.reshape(-1, 3)
+            state = self.elasticity.evaluate(y, tangent=False)
+            energy = state.energy_j + sum(t.evaluate(y).energy_j for t in terms)
+            if external is not None:
+                energy -= float(external @ y_flat)
+            if not quasi:
+                d = y_flat - inertia_target
+                energy += 0.5 * float(d @ (m * d)) / (h * h)
+                dx = y_flat - x0_flat
+                energy += 0.5 * cfg.rayleigh_mass * float(dx @ (m * dx)) / h
+                if damping is not None:
+                    energy += 0.5 * cfg.rayleigh_stiffness * float(dx @ (damping @ dx)) / h
+            return energy, state
+
+        y = x0_flat.copy()
+        total_linear = 0
+        worst_linear = 0.0
+        factorizations = 0
+        relative = math.inf
+        iterations = 0
+        energy = math.inf
+        for iterations in range(1, cfg.newton_max_iterations + 1):  # noqa: B007
+            state = self.elasticity.evaluate(
+                y.reshape(-1, 3), tangent=True, project_psd=bool(cfg.project_psd)
+            )
+            stiffness = self._stiffness_with_terms(state, y.reshape(-1, 3), terms)
+            internal = state.forces.reshape(-1) + self._term_forces(y.reshape(-1, 3), terms)
+            gradient = -internal
+            if external is not None:
+                gradient = gradient - external
+            h_data = stiffness.data.copy()
+            if not quasi:
+                inertial = m * (y - inertia_target) / (h * h)
+                gradient = gradient + inertial
+                dx = y - x0_flat
+                gradient = gradient + cfg.rayleigh_mass * m * dx / h
+                h_data[self._diagonal(stiffness)] += m / (h * h) + cfg.rayleigh_mass * m / h
+                if damping is not None:
+                    gradient = gradient + cfg.rayleigh_stiffness * (damping @ dx) / h
+                    h_data += (cfg.rayleigh_stiffness / h) * damping.data
+            else:
+                inertial = np.zeros_like(y)
+            mismatch = float(np.max(np.abs(target_flat - y[dofs]))) if dofs.size else 0.0
+            scale = max(
+                float(np.linalg.norm(internal)),
+                float(np.linalg.norm(inertial)),
+                float(np.linalg.norm(external)) if external is not None else 0.0,
+                1e-300,
+            )
+            relative = float(np.linalg.norm(gradient[free])) / scale
+            if not np.isfinite(relative):
+                return self._failed(x0, v0, StepStatus.DIVERGED)
+            if mismatch == 0.0 and (relative <= cfg.newton_tolerance or scale <= 1e-300):
+                break
+            matrix = sp.csr_matrix((h_data, stiffness.indices, stiffness.indptr), shape=stiffness.shape)
+            values = np.zeros_like(y)
+            values[dofs] = target_flat - y[dofs]
+            system = ConstrainedSystem(matrix, -gradient, constrained, values)
+            # Inexact Newton: solve only as accurately as the current residual deserves.
+            tolerance = min(1e-2, max(relative, 1e-10))
+            try:
+                direction, report = self.solver.solve(system, tolerance=tolerance)
+            except Exception:  # noqa: BLE001 - report, don't crash
+                return self._failed(x0, v0, StepStatus.SOLVER_FAILED)
+            total_linear += report.iterations
+            worst_linear = max(worst_linear, report.relative_residual)
+            factorizations += int(report.factorized)
+            if not np.all(np.isfinite(direction)):
+                return self._failed(x0, v0, StepStatus.SOLVER_FAILED)
+            y, energy = self._line_search(y, direction, gradient, mismatch, potential, energy)
+            if y is None:
+                break
+        else:
+            iterations = cfg.newton_max_iterations
+        if y is None:
+            return self._failed(x0, v0, StepStatus.DIVERGED)
+        new_x = y.reshape(-1, 3)
+        new_v = np.zeros_like(v0) if quasi else (new_x - x0) / h
+        # Reaction at constrained dofs: the constraint force balancing the residual there.
+        reaction = np.zeros_like(y)
+        reaction[dofs] = gradient[dofs]
+        report = SolveReport(total_linear, worst_linear, True, factorizations > 0)
+        outcome = self._finish(
+            x0, v0, new_x, new_v, reaction, report, newton_iterations=iterations, newton_residual=relative
+        )
+        outcome.factorizations = factorizations
+        converged = relative <= cfg.newton_tolerance and (
+            not dofs.size or float(np.max(np.abs(target_flat - y[dofs]))) == 0.0
+        )
+        if not converged and outcome.status is StepStatus.OK:
+            outcome.status = StepStatus.NOT_CONVERGED
+        return outcome
+
+    def _line_search(self, y, direction, gradient, mismatch, potential, energy):
+        """Backtracking Armijo search; returns (new y, its energy) or (None, inf) on failure."""
+        if not math.isfinite(energy):
+            energy, _ = potential(y)
+        slope = float(gradient @ direction)
+        alpha = 1.0
+        while alpha >= _MIN_STEP_FRACTION:
+            trial = y + alpha * direction
+            trial_energy, _ = potential(trial)
+            if math.isfinite(trial_energy) and (
+                # While constraints still move the boundary the energy may rightly rise: accept
+                # any finite full step then; afterwards require sufficient decrease.
+                mismatch > 0.0
+                or slope >= 0.0
+                or trial_energy <= energy + _ARMIJO_C * alpha * slope + 1e-14 * abs(energy)
+            ):
+                return trial, trial_energy
+            alpha *= 0.5
+        # No decrease along the direction: accept the smallest step only if finite.
+        trial = y + _MIN_STEP_FRACTION * direction
+        trial_energy, _ = potential(trial)
+        if math.isfinite(trial_energy):
+            return trial, trial_energy
+        return None, math.inf
+
+    # ------------------------------------------------------------------ helpers
+
+    def _finish(self, x, v, new_x, new_v, reaction, report, *, newton_iterations, newton_residual):
+        if not (np.all(np.isfinite(new_x)) and np.all(np.isfinite(new_v))):
+            return self._failed(x, v, StepStatus.DIVERGED)
+        if float(np.max(np.linalg.norm(new_x - self._rest, axis=1))) > self._blow_up_m:
+            return self._failed(x, v, StepStatus.DIVERGED)
+        ratios = self.elasticity.volume_ratios(new_x)
+        min_ratio = float(ratios.min())
+        status = StepStatus.INVERTED if min_ratio <= 0.0 else StepStatus.OK
+        energy = self.elasticity.energy(new_x)
+        return StepOutcome(
+            status=status,
+            positions=new_x,
+            velocities=new_v,
+            reaction_forces=reaction.reshape(-1, 3),
+            elastic_energy_j=float(energy),
+            newton_iterations=newton_iterations,
+            linear_iterations=report.iterations,
+            linear_residual=report.relative_residual,
+            newton_residual=newton_residual,
+            min_volume_ratio=min_ratio,
+            factorizations=int(report.factorized),
+        )
+
+    def _failed(self, x, v, status: StepStatus) -> StepOutcome:
+        self.solver.forget()
+        return StepOutcome(
+            status=status,
+            positions=x.copy(),
+            velocities=v.copy(),
+            reaction_forces=np.zeros_like(x),
+            elastic_energy_j=float(self.elasticity.energy(x)),
+            min_volume_ratio=float(self.elasticity.volume_ratios(x).min()),
+        )
+
+    def _dof_mask(self, nodes: NDArray[np.int64]) -> NDArray[np.bool_]:
+        mask = np.zeros(self.mass_dof.shape[0], dtype=bool)
+        mask[_node_dofs(nodes)] = True
+        return mask
+
+    def _diagonal(self, matrix: sp.csr_matrix) -> NDArray[np.int64]:
+        """Positions of the diagonal entries in the (fixed) CSR pattern."""
+        if self._diagonal_positions is None:
+            rows = np.arange(matrix.shape[0])
+            positions = np.empty(matrix.shape[0], dtype=np.int64)
+            for row in rows:  # once per mesh
+                start, stop = matrix.indptr[row], matrix.indptr[row + 1]
+                positions[row] = start + np.searchsorted(matrix.indices[start:stop], row)
+            self._diagonal_positions = positions
+        return self._diagonal_positions
+
+    def _stiffness_with_terms(self, state: ElasticState, positions, terms) -> sp.csr_matrix:
+        stiffness = state.stiffness
+        assert stiffness is not None
+        if not terms:
+            return stiffness
+        data = stiffness.data.copy()
+        for term in terms:
+            evaluation = term.evaluate(positions)
+            if evaluation.stiffness_values.size:
+                where = _pattern_positions(stiffness, evaluation.stiffness_rows, evaluation.stiffness_cols)
+                np.add.at(data, where, evaluation.stiffness_values)
+        return sp.csr_matrix((data, stiffness.indices, stiffness.indptr), shape=stiffness.shape)
+
+    @staticmethod
+    def _term_forces(positions, terms) -> NDArray[np.float64]:
+        total = np.zeros(positions.size)
+        for term in terms:
+            total += term.evaluate(positions).forces.reshape(-1)
+        return total
+
+
+def _node_dofs(nodes: NDArray[np.int64]) -> NDArray[np.int64]:
+    nodes = np.asarray(nodes, dtype=np.int64)
+    return (3 * nodes[:, None] + np.arange(3)).reshape(-1)
+
+
+def _pattern_positions(matrix: sp.csr_matrix, rows, cols) -> NDArray[np.int64]:
+    """Positions in a CSR data array of entries (rows, cols), which must be in the pattern."""
+    starts = matrix.indptr[rows]
+    stops = matrix.indptr[rows + 1]
+    where = np.empty(rows.shape[0], dtype=np.int64)
+    for i in range(rows.shape[0]):
+        local = np.searchsorted(matrix.indices[starts[i] : stops[i]], cols[i])
+        where[i] = starts[i] + local
+    if np.any(matrix.indices[where] != cols):
+        raise ValueError("an energy term's stiffness couples dofs outside the mesh's pattern")
+    return where
+
+
+def _rank(outcome: StepOutcome) -> int:
+    return SEVERITY[outcome.status]
+
+
+def _merge(first: StepOutcome, second: StepOutcome, final: StepOutcome) -> StepOutcome:
+    """Sum the work of two substeps; state and status from ``final``, the worst status wins."""
+    return StepOutcome(
+        status=worst(first.status, second.status) if final is second else final.status,
+        positions=final.positions,
+        velocities=final.velocities,
+        reaction_forces=final.reaction_forces,
+        elastic_energy_j=final.elastic_energy_j,
+        newton_iterations=first.newton_iterations + second.newton_iterations,
+        linear_iterations=first.linear_iterations + second.linear_iterations,
+        linear_residual=max(first.linear_residual, second.linear_residual),
+        newton_residual=final.newton_residual,
+        subdivisions=first.subdivisions + second.subdivisions,
+        min_volume_ratio=final.min_volume_ratio,
+        factorizations=first.factorizations + second.factorizations,
+    )

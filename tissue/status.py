@@ -1,0 +1,40 @@
+"""Step outcomes: a physical failure is reported as data, never raised."""
+
+from __future__ import annotations
+
+from enum import Enum
+
+
+class StepStatus(str, Enum):
+    """How a tissue step ended.
+
+    ``OK`` and ``NOT_CONVERGED`` commit a finite state; ``INVERTED`` commits a finite state in
+    which some tet has det F <= 0; ``DIVERGED`` and ``SOLVER_FAILED`` keep the state from
+    before the step (nothing non-finite is ever stored).
+    """
+
+    OK = "ok"
+    NOT_CONVERGED = "not_converged"
+    INVERTED = "inverted"
+    DIVERGED = "diverged"
+    SOLVER_FAILED = "solver_failed"
+
+    @property
+    def is_failure(self) -> bool:
+        """Whether the step counts as an instability (everything but ``OK``)."""
+        return self is not StepStatus.OK
+
+
+# When several problems occur in one step, the most severe is reported.
+SEVERITY = {
+    StepStatus.OK: 0,
+    StepStatus.NOT_CONVERGED: 1,
+    StepStatus.INVERTED: 2,
+    StepStatus.SOLVER_FAILED: 3,
+    StepStatus.DIVERGED: 4,
+}
+
+
+def worst(*statuses: StepStatus) -> StepStatus:
+    """The most severe of ``statuses``."""
+    return max(statuses, key=SEVERITY.__getitem__)
