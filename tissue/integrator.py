@@ -23,10 +23,11 @@ Modes:
 ``quasi_static=True`` drops inertia and damping: each step seeks static equilibrium with the
 constraints of that step (one linearised solve in ``paper`` mode, Newton in ``robust``).
 
-Constraints are Dirichlet conditions on whole nodes: the fixed set (always) and prescribed
-target positions for the step (the probe's nodes in prescribed-displacement contact).
-Reaction forces at constrained nodes are returned; the force the tissue exerts on whatever
-holds those nodes is their negative.
+Constraints are Dirichlet conditions on degrees of freedom (3·node + axis): the fixed set
+(always) and prescribed target coordinates for the step (the probe's nodes in prescribed-
+displacement contact; a frictionless platen prescribes one axis only). Reaction forces at
+constrained dofs are returned; the force the tissue exerts on whatever holds them is their
+negative.
 """
 
 from __future__ import annotations
@@ -188,6 +189,7 @@ class StepOutcome:
     min_volume_ratio: float = 1.0
     factorizations: int = 0
     seconds: float = 0.0
+    newton_residuals: list[float] = field(default_factory=list)
 
 
 @numba.njit(cache=True)
@@ -236,7 +238,7 @@ class ImplicitIntegrator:
         positions: NDArray[np.float64],
         velocities: NDArray[np.float64],
         dt: float,
-        constrained_nodes: NDArray[np.int64],
+        constrained_dofs: NDArray[np.int64],
         targets: NDArray[np.float64],
         terms: Sequence[EnergyTerm] = (),
     ) -> StepOutcome:
@@ -246,24 +248,24 @@ class ImplicitIntegrator:
             positions: node positions at the start [m], (node_count, 3).
             velocities: node velocities at the start [m/s], (node_count, 3).
             dt: the step [s].
-            constrained_nodes: indices of nodes whose end position is prescribed (fixed nodes
-                included), (k,).
-            targets: their positions at the end of the step [m], (k, 3).
+            constrained_dofs: dofs (3·node + axis) whose end coordinate is prescribed (fixed
+                nodes included), (k,), unique.
+            targets: their coordinates at the end of the step [m], (k,).
             terms: extra energy terms (penalty contact) active during the step.
         """
         start = time.perf_counter()
         if self.config.mode is IntegrationMode.PAPER:
-            outcome = self._paper_step(positions, velocities, dt, constrained_nodes, targets, terms)
+            outcome = self._paper_step(positions, velocities, dt, constrained_dofs, targets, terms)
         else:
             outcome = self._robust_step(
-                positions, velocities, dt, constrained_nodes, targets, terms, self.config.max_subdivisions
+                positions, velocities, dt, constrained_dofs, targets, terms, self.config.max_subdivisions
             )
         outcome.seconds = time.perf_counter() - start
         return outcome
 
     # ------------------------------------------------------------------ paper
 
-    def _paper_step(self, x, v, h, nodes, targets, terms) -> StepOutcome:
+    def _paper_step(self, x, v, h, dofs, targets, terms) -> StepOutcome:
         cfg = self.config
         state = self.elasticity.evaluate(x, tangent=True, project_psd=bool(cfg.project_psd))
         stiffness = self._stiffness_with_terms(state, x, terms)
@@ -273,21 +275,21 @@ class ImplicitIntegrator:
         v_flat = v.reshape(-1)
         k_data = stiffness.data
         kv = stiffness @ v_flat
-        constrained = self._dof_mask(nodes)
+        constrained = self._dof_mask(dofs)
         values = np.zeros(x.size)
-        dofs = _node_dofs(nodes)
+        x_flat = x.reshape(-1)
         if cfg.quasi_static:
             # K dx = f with dx prescribed at constrained dofs.
             matrix = sp.csr_matrix((k_data.copy(), stiffness.indices, stiffness.indptr), shape=stiffness.shape)
             rhs = force
-            values[dofs] = (targets - x[nodes]).reshape(-1)
+            values[dofs] = targets - x_flat[dofs]
         else:
             m = self.mass_dof
             a_data = (h * cfg.rayleigh_stiffness + h * h) * k_data
             a_data[self._diagonal(stiffness)] += (1.0 + h * cfg.rayleigh_mass) * m
             matrix = sp.csr_matrix((a_data, stiffness.indices, stiffness.indptr), shape=stiffness.shape)
             rhs = h * (force - cfg.rayleigh_mass * m * v_flat - cfg.rayleigh_stiffness * kv) - h * h * kv
-            values[dofs] = ((targets - x[nodes]) / h - v[nodes]).reshape(-1)
+            values[dofs] = (targets - x_flat[dofs]) / h - v_flat[dofs]
         original = matrix.data.copy()
         system = ConstrainedSystem(matrix, rhs, constrained, values)
         try:
@@ -298,7 +300,7 @@ class ImplicitIntegrator:
             return self._failed(x, v, StepStatus.SOLVER_FAILED)
         # Reactions: what the constraints add so that the constrained rows balance.
         rows_matrix_times = _row_products(
-            matrix.indptr, matrix.indices, original, dofs.astype(np.int64), solution
+            matrix.indptr, matrix.indices, original, dofs, solution
         )
         reaction = np.zeros(x.size)
         if cfg.quasi_static:
@@ -315,31 +317,31 @@ class ImplicitIntegrator:
 
     # ------------------------------------------------------------------ robust
 
-    def _robust_step(self, x, v, h, nodes, targets, terms, subdivisions_left) -> StepOutcome:
-        outcome = self._newton(x, v, h, nodes, targets, terms)
+    def _robust_step(self, x, v, h, dofs, targets, terms, subdivisions_left) -> StepOutcome:
+        outcome = self._newton(x, v, h, dofs, targets, terms)
         if not outcome.status.is_failure or subdivisions_left == 0:
             return outcome
         # Retry as two half steps, the prescribed targets interpolated linearly.
-        middle = x[nodes] + 0.5 * (targets - x[nodes])
-        first = self._robust_step(x, v, 0.5 * h, nodes, middle, terms, subdivisions_left - 1)
+        start = x.reshape(-1)[dofs]
+        middle = start + 0.5 * (targets - start)
+        first = self._robust_step(x, v, 0.5 * h, dofs, middle, terms, subdivisions_left - 1)
         if first.status in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
             return _merge(outcome, first, first)
         second = self._robust_step(
-            first.positions, first.velocities, 0.5 * h, nodes, targets, terms, subdivisions_left - 1
+            first.positions, first.velocities, 0.5 * h, dofs, targets, terms, subdivisions_left - 1
         )
         merged = _merge(first, second, second)
         merged.subdivisions += 1
         return merged if _rank(merged) <= _rank(outcome) else outcome
 
-    def _newton(self, x0, v0, h, nodes, targets, terms) -> StepOutcome:
+    def _newton(self, x0, v0, h, dofs, targets, terms) -> StepOutcome:
         cfg = self.config
         quasi = cfg.quasi_static
         m = self.mass_dof
         x0_flat = x0.reshape(-1)
         inertia_target = x0_flat + h * v0.reshape(-1)
-        dofs = _node_dofs(nodes)
-        target_flat = targets.reshape(-1)
-        constrained = self._dof_mask(nodes)
+        target_flat = targets
+        constrained = self._dof_mask(dofs)
         free = ~constrained
         external = self.external_force.reshape(-1) if self.external_force is not None else None
 
@@ -370,6 +372,7 @@ class ImplicitIntegrator:
         relative = math.inf
         iterations = 0
         energy = math.inf
+        history: list[float] = []
         for iterations in range(1, cfg.newton_max_iterations + 1):  # noqa: B007
             state = self.elasticity.evaluate(
                 y.reshape(-1, 3), tangent=True, project_psd=bool(cfg.project_psd)
@@ -399,6 +402,7 @@ class ImplicitIntegrator:
                 1e-300,
             )
             relative = float(np.linalg.norm(gradient[free])) / scale
+            history.append(relative)
             if not np.isfinite(relative):
                 return self._failed(x0, v0, StepStatus.DIVERGED)
             if mismatch == 0.0 and (relative <= cfg.newton_tolerance or scale <= 1e-300):
@@ -435,6 +439,7 @@ class ImplicitIntegrator:
             x0, v0, new_x, new_v, reaction, report, newton_iterations=iterations, newton_residual=relative
         )
         outcome.factorizations = factorizations
+        outcome.newton_residuals = history
         converged = relative <= cfg.newton_tolerance and (
             not dofs.size or float(np.max(np.abs(target_flat - y[dofs]))) == 0.0
         )
@@ -503,9 +508,9 @@ class ImplicitIntegrator:
             min_volume_ratio=float(self.elasticity.volume_ratios(x).min()),
         )
 
-    def _dof_mask(self, nodes: NDArray[np.int64]) -> NDArray[np.bool_]:
+    def _dof_mask(self, dofs: NDArray[np.int64]) -> NDArray[np.bool_]:
         mask = np.zeros(self.mass_dof.shape[0], dtype=bool)
-        mask[_node_dofs(nodes)] = True
+        mask[dofs] = True
         return mask
 
     def _diagonal(self, matrix: sp.csr_matrix) -> NDArray[np.int64]:
@@ -540,9 +545,10 @@ class ImplicitIntegrator:
         return total
 
 
-def _node_dofs(nodes: NDArray[np.int64]) -> NDArray[np.int64]:
+def node_dofs(nodes: NDArray[np.int64], axes: tuple[int, ...] = (0, 1, 2)) -> NDArray[np.int64]:
+    """Dof indices (3·node + axis), node-major, of ``nodes`` along ``axes``: (len(nodes)·len(axes),)."""
     nodes = np.asarray(nodes, dtype=np.int64)
-    return (3 * nodes[:, None] + np.arange(3)).reshape(-1)
+    return (3 * nodes[:, None] + np.asarray(axes, dtype=np.int64)).reshape(-1)
 
 
 def _pattern_positions(matrix: sp.csr_matrix, rows, cols) -> NDArray[np.int64]:

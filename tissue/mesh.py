@@ -255,20 +255,56 @@ def _check_mesh(mesh: TetMesh) -> None:
         )
 
 
-def check_rigid_motion_removed(mesh: TetMesh, extra_fixed: NDArray[np.int64] | None = None) -> None:
-    """Raise MeshError unless the fixed nodes remove all rigid motion (quasi-statics needs it).
+def check_rigid_motion_removed(mesh: TetMesh, constrained_dofs: NDArray[np.int64]) -> None:
+    """Raise MeshError unless the constrained dofs remove all six rigid motions.
 
-    Three or more non-collinear fixed nodes (fixed in all directions) leave no rigid motion.
+    Quasi-static problems are singular otherwise. The rigid modes (three translations, three
+    rotations about the centroid) restricted to the constrained dofs must have rank six.
     """
-    fixed = mesh.fixed_nodes if extra_fixed is None else np.union1d(mesh.fixed_nodes, extra_fixed)
-    if fixed.size >= 3:
-        points = mesh.nodes[fixed] - mesh.nodes[fixed].mean(axis=0)
-        singular = np.linalg.svd(points, compute_uv=False)
-        extent = float(np.max(np.ptp(mesh.nodes, axis=0)))
-        if singular[1] > 1e-6 * extent:
+    constrained_dofs = np.asarray(constrained_dofs, dtype=np.int64)
+    nodes = constrained_dofs // 3
+    axes = constrained_dofs % 3
+    relative = mesh.nodes[nodes] - mesh.nodes.mean(axis=0)
+    modes = np.zeros((constrained_dofs.size, 6))
+    modes[np.arange(constrained_dofs.size), axes] = 1.0
+    # Rotation about axis a moves point r by e_a x r; its component along `axes`.
+    for a in range(3):
+        rotation = np.cross(np.eye(3)[a], relative)
+        modes[:, 3 + a] = rotation[np.arange(constrained_dofs.size), axes]
+    extent = float(np.max(np.ptp(mesh.nodes, axis=0)))
+    if constrained_dofs.size >= 6:
+        singular = np.linalg.svd(modes * np.array([1, 1, 1, 1 / extent, 1 / extent, 1 / extent]), compute_uv=False)
+        if singular[-1] > 1e-9:
             return
     raise MeshError(
-        f"the fixed-node set of '{mesh.name}' ({fixed.size} nodes) leaves rigid motion free: "
-        "fix at least three non-collinear nodes (for example the base plane, "
-        "fixed_plane='z=min'), or simulate dynamically instead of quasi-statically"
+        f"the constraints of '{mesh.name}' ({constrained_dofs.size} constrained dofs) leave rigid "
+        "motion free, so a quasi-static step is singular: fix at least three non-collinear nodes "
+        "(for example the base plane, fixed_plane='z=min'), or simulate dynamically"
     )
+
+
+def top_surface_nodes(
+    mesh: TetMesh,
+    center_xy: tuple[float, float],
+    half_size_xy: tuple[float, float],
+    depth_m: float = 0.002,
+) -> NDArray[np.int64]:
+    """Boundary nodes a flat, horizontal probe face pressing down at ``center_xy`` first meets.
+
+    Args:
+        mesh: the tissue mesh (z up).
+        center_xy: centre of the rectangular face in plan view [m].
+        half_size_xy: half sizes of the face along x and y [m].
+        depth_m: nodes within this height below the highest node under the face are taken [m].
+
+    Returns:
+        node indices, sorted.
+    """
+    boundary = np.unique(boundary_faces(mesh.tets))
+    xy = mesh.nodes[boundary, :2] - np.asarray(center_xy)
+    inside = np.all(np.abs(xy) <= np.asarray(half_size_xy), axis=1)
+    candidates = boundary[inside]
+    if candidates.size == 0:
+        raise MeshError(f"no surface node lies under a face at {center_xy} of half size {half_size_xy}")
+    top = mesh.nodes[candidates, 2].max()
+    return np.sort(candidates[mesh.nodes[candidates, 2] >= top - depth_m])

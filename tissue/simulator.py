@@ -32,6 +32,7 @@ from tissue.integrator import (
     IntegrationMode,
     IntegratorConfig,
     StepOutcome,
+    node_dofs,
 )
 from tissue.material import TissueMaterials
 from tissue.mesh import TetMesh, check_rigid_motion_removed
@@ -135,7 +136,8 @@ class StepResult:
         landmarks: landmark positions [m], (landmark_count, 3) (empty if none).
         compute_ms: wall time of the step [ms].
         newton_iterations, linear_iterations, linear_residual, newton_residual,
-        subdivisions, factorizations, min_volume_ratio: solver diagnostics.
+        subdivisions, factorizations, min_volume_ratio, newton_residuals: solver
+        diagnostics (newton_residuals: relative residual at each Newton iteration).
     """
 
     status: StepStatus
@@ -152,6 +154,7 @@ class StepResult:
     subdivisions: int
     factorizations: int
     min_volume_ratio: float
+    newton_residuals: tuple[float, ...] = ()
     extras: dict[str, Any] = field(default_factory=dict)
 
     def reaction_force_n(self, nodes: ArrayLike) -> NDArray[np.float64]:
@@ -182,15 +185,15 @@ class TissueSimulator:
         self.mesh = mesh
         self.materials = materials or TissueMaterials()
         self.config = config or SimulationConfig()
-        if self.config.quasi_static:
-            check_rigid_motion_removed(mesh)
         self.elasticity = Elasticity(mesh, self.materials, self.config.anti_locking)
         external = None
         if self.config.gravity_m_s2 is not None:
             external = self.elasticity.lumped_mass[:, None] * np.asarray(self.config.gravity_m_s2)[None, :]
         self.integrator = ImplicitIntegrator(self.elasticity, self.config.integrator_config(), external)
-        self._prescribed_nodes = np.zeros(0, dtype=np.int64)
-        self._prescribed_targets = np.zeros((0, 3))
+        self._prescribed_dofs = np.zeros(0, dtype=np.int64)
+        self._prescribed_targets = np.zeros(0)
+        self._fixed_dofs = node_dofs(mesh.fixed_nodes)
+        self._checked_dofs = np.zeros(0, dtype=np.int64)
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -240,13 +243,15 @@ class TissueSimulator:
 
     # ------------------------------------------------------------------ boundary conditions
 
-    def prescribe(self, nodes: ArrayLike, targets: ArrayLike) -> None:
-        """Prescribe where ``nodes`` are at the end of the next step(s).
+    def prescribe(self, nodes: ArrayLike, targets: ArrayLike, axes: Sequence[int] = (0, 1, 2)) -> None:
+        """Prescribe where ``nodes`` are at the end of the next step(s), replacing any earlier set.
 
         Args:
-            nodes: node indices, (k,).
+            nodes: node indices, (k,), unique.
             targets: their positions [m], (k, 3), or (3,) for all alike. They stay prescribed
                 (at these targets) until changed or cleared.
+            axes: the coordinates prescribed (0 = x, 1 = y, 2 = z); the others stay free, as
+                on a frictionless platen pressing along z with ``axes=(2,)``.
         """
         nodes = np.asarray(nodes, dtype=np.int64).reshape(-1)
         targets = np.asarray(targets, dtype=np.float64)
@@ -261,16 +266,41 @@ class TissueSimulator:
                 f"node indices must lie in [0, {self.mesh.node_count - 1}]; "
                 f"got [{nodes.min()}, {nodes.max()}]"
             )
+        if np.unique(nodes).size != nodes.size:
+            raise TissueInputError("prescribed nodes must be unique; remove the repeated indices")
+        axes_array = np.asarray(axes, dtype=np.int64)
+        if axes_array.size == 0 or np.any((axes_array < 0) | (axes_array > 2)) or np.unique(
+            axes_array
+        ).size != axes_array.size:
+            raise TissueInputError(f"axes must be distinct values among 0, 1, 2; got {list(axes)}")
+        self.prescribe_dofs(node_dofs(nodes, tuple(axes_array)), targets[:, axes_array].reshape(-1))
+
+    def prescribe_dofs(self, dofs: ArrayLike, targets: ArrayLike) -> None:
+        """Prescribe individual coordinates, replacing any earlier prescribed set.
+
+        Args:
+            dofs: degrees of freedom 3·node + axis, (k,), unique.
+            targets: their coordinates at the end of the next step(s) [m], (k,).
+        """
+        dofs = np.asarray(dofs, dtype=np.int64).reshape(-1)
+        targets = np.asarray(targets, dtype=np.float64).reshape(-1)
+        if targets.shape != dofs.shape:
+            raise TissueInputError(f"got {targets.size} targets for {dofs.size} dofs; give one each")
+        if dofs.size and (dofs.min() < 0 or dofs.max() >= self.mesh.dof_count):
+            raise TissueInputError(
+                f"dofs must lie in [0, {self.mesh.dof_count - 1}]; got [{dofs.min()}, {dofs.max()}]"
+            )
+        if np.unique(dofs).size != dofs.size:
+            raise TissueInputError("prescribed dofs must be unique; remove the repeated indices")
         if not np.all(np.isfinite(targets)):
             raise TissueInputError("prescribed targets contain NaN or Inf")
-        order = np.argsort(nodes)
-        self._prescribed_nodes = nodes[order]
-        self._prescribed_targets = np.array(targets[order])
+        self._prescribed_dofs = dofs.copy()
+        self._prescribed_targets = targets.copy()
 
     def clear_prescribed(self) -> None:
         """Release every prescribed node (fixed nodes stay fixed)."""
-        self._prescribed_nodes = np.zeros(0, dtype=np.int64)
-        self._prescribed_targets = np.zeros((0, 3))
+        self._prescribed_dofs = np.zeros(0, dtype=np.int64)
+        self._prescribed_targets = np.zeros(0)
 
     def nodes_near_point(self, point: ArrayLike, radius_m: float) -> NDArray[np.int64]:
         """Indices of rest nodes within ``radius_m`` [m] of ``point`` [m]."""
@@ -287,8 +317,11 @@ class TissueSimulator:
         """
         dt = self.config.tissue_dt if dt is None else float(dt)
         start = time.perf_counter()
-        nodes, targets = self._constraints()
-        outcome = self.integrator.step(self._positions, self._velocities, dt, nodes, targets, terms)
+        dofs, targets = self._constraints()
+        if self.config.quasi_static and not np.array_equal(dofs, self._checked_dofs):
+            check_rigid_motion_removed(self.mesh, dofs)
+            self._checked_dofs = dofs
+        outcome = self.integrator.step(self._positions, self._velocities, dt, dofs, targets, terms)
         if outcome.status not in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
             self._positions = outcome.positions
             self._velocities = outcome.velocities
@@ -297,14 +330,13 @@ class TissueSimulator:
         return self._result(outcome, elapsed_ms)
 
     def _constraints(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-        fixed = self.mesh.fixed_nodes
-        prescribed = self._prescribed_nodes
+        fixed = self._fixed_dofs
+        prescribed = self._prescribed_dofs
         if prescribed.size:
-            keep = ~np.isin(fixed, prescribed)  # a prescribed target overrides "fixed"
-            fixed = fixed[keep]
-        nodes = np.concatenate([fixed, prescribed])
-        targets = np.concatenate([self.mesh.nodes[fixed], self._prescribed_targets])
-        return nodes, targets
+            fixed = fixed[~np.isin(fixed, prescribed)]  # a prescribed target overrides "fixed"
+        dofs = np.concatenate([fixed, prescribed])
+        targets = np.concatenate([self.mesh.nodes.reshape(-1)[fixed], self._prescribed_targets])
+        return dofs, targets
 
     def _result(self, outcome: StepOutcome, elapsed_ms: float) -> StepResult:
         landmarks = (
@@ -327,6 +359,7 @@ class TissueSimulator:
             subdivisions=outcome.subdivisions,
             factorizations=outcome.factorizations,
             min_volume_ratio=outcome.min_volume_ratio,
+            newton_residuals=tuple(outcome.newton_residuals),
         )
 
     # ------------------------------------------------------------------ reading

@@ -1,0 +1,99 @@
+"""The ``probegym`` command line: ``demo``, ``mesh``, ``bench tissue``.
+
+Every subcommand validates its arguments before doing any work and exits with status 2
+and a message naming the bad value when they are wrong.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from tissue.errors import TissueInputError
+
+
+def _level(value: str) -> int:
+    from tissue.phantom import parse_level
+
+    try:
+        return parse_level(value)
+    except TissueInputError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def _levels(value: str) -> list[int]:
+    return [_level(part) for part in value.split(",") if part.strip()]
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="probegym",
+        description="Robotic breast ultrasound: FE tissue, probe contact, Gymnasium environments.",
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    demo = commands.add_parser(
+        "demo", help="compress the built-in phantom with the probe and print what happened"
+    )
+    demo.add_argument("--level", type=_level, default=4126, help="phantom mesh level (tet count)")
+    demo.add_argument("--depth-mm", type=float, default=10.0, help="compression depth [mm]")
+    demo.add_argument("--mode", choices=["paper", "robust"], default="robust")
+
+    mesh = commands.add_parser("mesh", help="write a phantom mesh level to a file")
+    mesh.add_argument("--level", type=_level, required=True, help="tet-count level, e.g. 4126")
+    mesh.add_argument("--out", type=Path, required=True, help="output file; format by suffix")
+
+    bench = commands.add_parser("bench", help="benchmarks that print a table and write JSON")
+    bench_kinds = bench.add_subparsers(dest="bench", required=True, metavar="BENCHMARK")
+    tissue = bench_kinds.add_parser("tissue", help="assembly, paper step, factorisation, Newton")
+    tissue.add_argument(
+        "--levels",
+        type=_levels,
+        default=None,
+        help="comma-separated levels (default: 623 to 26220; add 105004,176506 for the finest)",
+    )
+    tissue.add_argument("--repeats", type=int, default=15, help="timed repeats per figure")
+    tissue.add_argument("--json", type=Path, default=Path("bench_tissue.json"))
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``probegym`` console script."""
+    parser = _build_parser()
+    args = parser.parse_args(argv)
+    try:
+        if args.command == "demo":
+            from agents.tissue_demo import run_demo
+
+            return run_demo(level=args.level, depth_m=args.depth_mm * 1e-3, mode=args.mode)
+        if args.command == "mesh":
+            return _mesh(args.level, args.out)
+        if args.command == "bench" and args.bench == "tissue":
+            from agents.tissue_benchmark import run_tissue_benchmark
+
+            if args.repeats < 1:
+                parser.error(f"--repeats must be >= 1; got {args.repeats}")
+            run_tissue_benchmark(levels=args.levels, repeats=args.repeats, json_path=args.json)
+            return 0
+    except TissueInputError as error:
+        print(f"probegym: error: {error}", file=sys.stderr)
+        return 2
+    parser.error("unknown command")
+    return 2
+
+
+def _mesh(level: int, out: Path) -> int:
+    from tissue.mesh_io import write_mesh
+    from tissue.phantom import breast_phantom, describe_mesh
+
+    mesh = breast_phantom(level)
+    path = write_mesh(mesh, out)
+    print(describe_mesh(mesh))
+    print(f"written: {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,182 @@
+"""``probegym bench tissue``: what each part of a tissue step costs, per mesh level.
+
+Prints a table and writes a JSON list with one record per level. Times are medians over
+repeats of the same operation in one process; compare ratios, not absolute numbers, on a
+shared machine.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import resource
+import time
+from pathlib import Path
+
+import numpy as np
+
+from tissue.material import TissueMaterials
+from tissue.mesh import top_surface_nodes
+from tissue.phantom import breast_phantom
+from tissue.simulator import SimulationConfig, TissueSimulator
+from tissue.solvers import ConstrainedSystem, DirectFactorizer, LinearSolver, LinearSolverConfig
+
+DEFAULT_LEVELS = (623, 1363, 2539, 4126, 7369, 12861, 26220)
+PROBE_FACE_HALF_SIZE_M = (0.0265, 0.0065)
+# Probe advance per 0.02 s step at the paper's 0.01 m/s.
+STEP_ADVANCE_M = 0.0002
+# The state the timings are taken in: this far into a compression.
+PRELOAD_DEPTH_M = 0.004
+
+
+def _median_ms(samples: list[float]) -> float:
+    return float(np.median(samples)) * 1e3
+
+
+def _press(sim: TissueSimulator, nodes: np.ndarray, depth_m: float) -> None:
+    sim.prescribe(nodes, sim.rest_positions[nodes] + np.array([0.0, 0.0, -depth_m]))
+
+
+def benchmark_level(level: int, repeats: int) -> dict[str, float | int | str]:
+    """Measure one level; returns the JSON record."""
+    mesh = breast_phantom(level)
+    materials = TissueMaterials()
+    center = (mesh.nodes[:, :2].min(axis=0) + mesh.nodes[:, :2].max(axis=0)) / 2
+    probe_nodes = top_surface_nodes(mesh, (center[0], center[1]), PROBE_FACE_HALF_SIZE_M)
+
+    # A robust simulator brought to a preloaded, converged state that all timings start from.
+    robust = TissueSimulator(mesh, materials, SimulationConfig(mode="robust"))
+    depth = 0.0
+    while depth < PRELOAD_DEPTH_M - 1e-12:
+        depth += STEP_ADVANCE_M
+        _press(robust, probe_nodes, depth)
+        robust.step()
+    loaded_positions = robust.positions.copy()
+    loaded_velocities = robust.velocities.copy()
+    elasticity = robust.elasticity
+
+    # Forces + tangent (assembly), unprojected as in paper mode.
+    elasticity.evaluate(loaded_positions, tangent=True)
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        elasticity.evaluate(loaded_positions, tangent=True)
+        samples.append(time.perf_counter() - start)
+    assembly_ms = _median_ms(samples)
+
+    # Newton (robust) steps continuing the compression: converged steps, reusing factorisations.
+    samples, iterations, factorizations, statuses = [], [], [], []
+    for _ in range(repeats):
+        depth += STEP_ADVANCE_M
+        _press(robust, probe_nodes, depth)
+        result = robust.step()
+        samples.append(result.compute_ms / 1e3)
+        iterations.append(result.newton_iterations)
+        factorizations.append(result.factorizations)
+        statuses.append(result.status.value)
+    newton_step_ms = _median_ms(samples)
+
+    # Paper-mode steps (assembly + 25 CG iterations + update) from the same loaded state.
+    paper = TissueSimulator(mesh, materials, SimulationConfig(mode="paper"))
+    paper.set_state(loaded_positions, loaded_velocities)
+    paper_depth = PRELOAD_DEPTH_M
+    samples = []
+    for _ in range(repeats):
+        paper_depth += STEP_ADVANCE_M
+        _press(paper, probe_nodes, paper_depth)
+        samples.append(paper.step().compute_ms / 1e3)
+    paper_step_ms = _median_ms(samples)
+
+    # Direct factorisation of the paper's system matrix, and how far 25 CG iterations are
+    # from its exact solution in the energy norm.
+    system = _paper_system(paper, probe_nodes, paper_depth + STEP_ADVANCE_M)
+    factorizer = DirectFactorizer()
+    factorizer.factorize(system.matrix)
+    samples = []
+    for _ in range(max(3, repeats // 3)):
+        start = time.perf_counter()
+        factorization, _ = factorizer.factorize(system.matrix)
+        samples.append(time.perf_counter() - start)
+    direct_factor_ms = _median_ms(samples)
+    exact = factorization.solve(system.rhs)
+    capped, report = LinearSolver(LinearSolverConfig(kind="cg", cg_max_iterations=25, cg_tolerance=1e-12)).solve(
+        system
+    )
+    error = capped - exact
+    cg25_energy_error = float(np.sqrt(error @ (system.matrix @ error) / (exact @ (system.matrix @ exact))))
+
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return {
+        "level": level,
+        "tets": mesh.tet_count,
+        "nodes": mesh.node_count,
+        "assembly_ms": assembly_ms,
+        "paper_step_ms": paper_step_ms,
+        "direct_factor_ms": direct_factor_ms,
+        "newton_step_ms": newton_step_ms,
+        "newton_iterations_median": float(np.median(iterations)),
+        "newton_factorizations_per_step": float(np.mean(factorizations)),
+        "newton_status": max(set(statuses), key=statuses.count),
+        "cg25_energy_error": cg25_energy_error,
+        "cg25_relative_residual": report.relative_residual,
+        "peak_rss_mb": peak_mb,
+        "repeats": repeats,
+    }
+
+
+def _paper_system(sim: TissueSimulator, nodes: np.ndarray, depth_m: float) -> ConstrainedSystem:
+    """The constrained linear system of the paper's eq. (5) at the simulator's state."""
+    import scipy.sparse as sp
+
+    cfg = sim.integrator.config
+    h = sim.config.tissue_dt
+    x, v = sim.positions, sim.velocities
+    state = sim.elasticity.evaluate(x, tangent=True)
+    stiffness = state.stiffness
+    assert stiffness is not None
+    m = np.repeat(sim.elasticity.lumped_mass, 3)
+    data = (h * cfg.rayleigh_stiffness + h * h) * stiffness.data
+    matrix = sp.csr_matrix((data, stiffness.indices, stiffness.indptr), shape=stiffness.shape)
+    matrix = (matrix + sp.diags((1.0 + h * cfg.rayleigh_mass) * m)).tocsr()
+    matrix.sort_indices()
+    kv = stiffness @ v.reshape(-1)
+    rhs = h * (state.forces.reshape(-1) - cfg.rayleigh_mass * m * v.reshape(-1) - cfg.rayleigh_stiffness * kv)
+    rhs -= h * h * kv
+    constrained_nodes = np.concatenate([sim.mesh.fixed_nodes, nodes])
+    targets = np.concatenate(
+        [sim.mesh.nodes[sim.mesh.fixed_nodes], sim.rest_positions[nodes] + [0.0, 0.0, -depth_m]]
+    )
+    dofs = (3 * constrained_nodes[:, None] + np.arange(3)).reshape(-1)
+    mask = np.zeros(rhs.size, dtype=bool)
+    mask[dofs] = True
+    values = np.zeros(rhs.size)
+    values[dofs] = ((targets - x[constrained_nodes]) / h - v[constrained_nodes]).reshape(-1)
+    return ConstrainedSystem(matrix, rhs, mask, values)
+
+
+def run_tissue_benchmark(
+    levels: list[int] | None, repeats: int, json_path: Path
+) -> list[dict[str, float | int | str]]:
+    """Benchmark ``levels`` (default 623 to 26,220 tets); print a table; write JSON."""
+    levels = list(levels or DEFAULT_LEVELS)
+    records = []
+    header = (
+        f"{'tets':>8} {'nodes':>7} {'assembly':>9} {'paper step':>11} {'factor':>8} "
+        f"{'newton step':>12} {'newton it':>9} {'CG25 err':>9} {'peak MB':>8}"
+    )
+    print(f"probegym bench tissue — medians of {repeats} repeats, times in ms ({platform.processor() or platform.machine()})")
+    print(header)
+    for level in levels:
+        record = benchmark_level(level, repeats)
+        records.append(record)
+        print(
+            f"{record['tets']:>8} {record['nodes']:>7} {record['assembly_ms']:>9.2f} "
+            f"{record['paper_step_ms']:>11.2f} {record['direct_factor_ms']:>8.2f} "
+            f"{record['newton_step_ms']:>12.2f} {record['newton_iterations_median']:>9.1f} "
+            f"{record['cg25_energy_error']:>9.1%} {record['peak_rss_mb']:>8.0f}",
+            flush=True,
+        )
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(records, indent=2))  # keep what is measured so far
+    print(f"written: {json_path}")
+    return records

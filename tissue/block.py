@@ -1,0 +1,98 @@
+"""Structured tetrahedral blocks: test specimens for analytic checks and quick experiments."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tissue.errors import MeshError
+from tissue.mesh import TetMesh
+
+# Kuhn (Freudenthal) split of the unit cube into six positively oriented tets that share the
+# main diagonal 0-7; neighbouring cubes then agree on every face, so the mesh is conforming.
+_CUBE_CORNERS = np.array(
+    [[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]]
+)
+_KUHN_TETS = np.array(
+    [[0, 1, 3, 7], [0, 3, 2, 7], [0, 2, 6, 7], [0, 6, 4, 7], [0, 4, 5, 7], [0, 5, 1, 7]]
+)
+
+
+def block_mesh(
+    size_m: tuple[float, float, float],
+    divisions: tuple[int, int, int],
+    origin_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    fix: str | None = "z=min",
+    grading: tuple[float, float, float] = (1.0, 1.0, 1.0),
+) -> TetMesh:
+    """A box of size_m [m] split into divisions cubes, each cut into six tets.
+
+    Args:
+        size_m: edge lengths along x, y, z [m].
+        divisions: cells along x, y, z (each >= 1).
+        origin_m: the corner with the smallest coordinates [m].
+        fix: nodes held fixed: ``"z=min"`` style (axis and side), or None for none.
+        grading: per axis, the ratio of the last cell's size to the first's (1 = uniform),
+            to refine near the origin side.
+
+    Returns:
+        a TetMesh with one region ("tissue").
+    """
+    if any(d < 1 for d in divisions):
+        raise MeshError(f"divisions must be >= 1 along every axis; got {divisions}")
+    if any(not s > 0 for s in size_m):
+        raise MeshError(f"size_m must be positive along every axis; got {size_m}")
+    axes = []
+    for length, count, ratio, start in zip(size_m, divisions, grading, origin_m, strict=True):
+        if ratio == 1.0:
+            ticks = np.linspace(0.0, 1.0, count + 1)
+        else:
+            widths = ratio ** (np.arange(count) / max(count - 1, 1))
+            ticks = np.concatenate([[0.0], np.cumsum(widths) / widths.sum()])
+        axes.append(start + length * ticks)
+    nx, ny, nz = (d + 1 for d in divisions)
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+
+    def index(i, j, k):
+        return (i * ny + j) * nz + k
+
+    i, j, k = np.meshgrid(
+        np.arange(divisions[0]), np.arange(divisions[1]), np.arange(divisions[2]), indexing="ij"
+    )
+    i, j, k = i.reshape(-1), j.reshape(-1), k.reshape(-1)
+    corners = np.stack([index(i + a, j + b, k + c) for a, b, c in _CUBE_CORNERS], axis=1)
+    tets = corners[:, _KUHN_TETS].reshape(-1, 4)
+    fixed = np.zeros(0, dtype=np.int64) if fix is None else nodes_on_plane(grid, fix)
+    return TetMesh(
+        nodes=grid,
+        tets=tets,
+        region=np.zeros(tets.shape[0], dtype=np.int64),
+        fixed_nodes=fixed,
+        name=f"block {size_m} m, {divisions} cells",
+    )
+
+
+def nodes_on_plane(
+    positions: NDArray[np.float64], plane: str, tolerance_m: float | None = None
+) -> NDArray[np.int64]:
+    """Indices of nodes on an extreme plane of the point set, e.g. ``"z=min"`` or ``"x=max"``.
+
+    Args:
+        positions: node positions [m], (node_count, 3).
+        plane: ``AXIS=min`` or ``AXIS=max`` with AXIS one of x, y, z.
+        tolerance_m: distance from the plane still counted on it [m]; default 1e-6 of the
+            extent along that axis.
+    """
+    try:
+        axis_name, side = (part.strip().lower() for part in plane.split("="))
+        axis = "xyz".index(axis_name)
+        if side not in ("min", "max") or len(axis_name) != 1:
+            raise ValueError
+    except ValueError:
+        raise MeshError(
+            f"plane must look like 'z=min' (axis x, y or z; side min or max); got {plane!r}"
+        ) from None
+    values = positions[:, axis]
+    level = values.min() if side == "min" else values.max()
+    tolerance = tolerance_m if tolerance_m is not None else 1e-6 * float(np.ptp(values) or 1.0)
+    return np.flatnonzero(np.abs(values - level) <= tolerance)
