@@ -1,0 +1,729 @@
+"""Numba kernels for linear-tet hyperelasticity: element pass, row-parallel assembly, ANP.
+
+This module holds the hot loops behind :class:`tissue.elasticity.Elasticity`; it has no
+public API of its own (the class is the contract). Conventions:
+
+* ``grads[e, a]`` is the rest gradient of shape function a of tet e, dN_a/dX [1/m], so
+  that F = sum_a x_a grads[e, a]^T (one integration point).
+* 3x3 matrices are stored flat, row-major: ``M[3 i + j] = M_ij``.
+* The stiffness matrix is CSR with 3x3 node blocks laid out row by row: node row b owns
+  the CSR rows 3b..3b+2, and its ``nb`` block columns (sorted node indices) give every one
+  of those rows the columns 3c, 3c+1, 3c+2 for each neighbour c. Entry (i, k) of the
+  block at position p of node row b therefore sits at
+  ``9 * block_ptr[b] + i * 3 * nb + 3 * p + k`` in the data array.
+
+Assembly is a GATHER over node rows (``prange`` over nodes): each node row sums the
+contributions of the tets (and ANP patches) touching it, so no two threads ever write the
+same entry and no atomics are needed. The per-tet quantities the gather needs (F, cof F and
+three scalars) are computed once per tet by the element pass; the 12x12 element matrices
+are never stored. Because every row is summed in the same (sorted) element order and the
+block formulas are exactly antisymmetric/symmetric under swapping the two nodes, the
+assembled matrix is bitwise symmetric; fastmath is therefore off (FMA contraction would
+break that), which costs little as these loops are memory bound.
+
+Energy structure shared by both laws: W(F) = mu/2 (I_C - 3) + psi(J), so that
+
+    P = mu F + psi'(J) cof F,
+    dP/dF = mu I_9 + psi''(J) vec(cof F) vec(cof F)^T + psi'(J) d2J/dF2,
+
+and the element block of nodes a, c is (V = rest volume)
+
+    K_ac = V [mu (G_a . G_c) I_3 + psi'' (cof F G_a)(cof F G_c)^T + psi' S(F (G_a x G_c))],
+
+with S(w)_ik = eps_ikm w_m, since d2J/dF_ij dF_kl = eps_ikm eps_jln F_mn.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+LAW_STABLE = 0
+LAW_CLASSIC = 1
+
+# At most 3 twist/flip modes (one per pair can be negative) and 3 scaling modes.
+MAX_NEGATIVE_MODES = 6
+# Eigenvalues of dP/dF below -this * mu are clamped; smaller ones are round-off.
+_CLAMP_TOLERANCE = 1e-12
+# Tets per parallel chunk: scratch arrays are allocated once per chunk, not per tet.
+_CHUNK = 256
+
+_JIT = {"cache": True, "fastmath": False}
+
+
+def shape_gradients(
+    nodes: NDArray[np.float64], tets: NDArray[np.int64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Rest shape-function gradients and volumes of linear tets.
+
+    Args:
+        nodes: rest positions [m], shape (node_count, 3).
+        tets: positively oriented node indices, shape (tet_count, 4).
+
+    Returns:
+        grads: dN_a/dX [1/m], shape (tet_count, 4, 3).
+        volumes: rest volumes V [m^3], shape (tet_count,).
+    """
+    x0 = nodes[tets[:, 0]]
+    # Dm has the edge vectors as columns; F = Ds Dm^-1, so row a-1 of Dm^-1 is grad N_a.
+    dm = np.stack([nodes[tets[:, k]] - x0 for k in (1, 2, 3)], axis=2)
+    dm_inv = np.linalg.inv(dm)
+    grads = np.empty((tets.shape[0], 4, 3))
+    grads[:, 1:, :] = dm_inv
+    grads[:, 0, :] = -dm_inv.sum(axis=1)
+    volumes = np.linalg.det(dm) / 6.0
+    return grads, volumes
+
+
+# ----------------------------------------------------------------------------------------
+# Small dense helpers (3x3)
+
+
+@nb.njit(**_JIT)
+def _sym3_eigen(a: np.ndarray, w: np.ndarray, v: np.ndarray, r: np.ndarray) -> None:
+    """Cyclic Jacobi eigen-decomposition of a symmetric 3x3 ``a`` (destroyed).
+
+    Robust for repeated eigenvalues (near the rest state all singular values are 1), which
+    closed-form cubic solutions are not. Writes eigenvalues to ``w`` (3,), unsorted, and
+    eigenvectors as the columns of ``v`` (3, 3); ``r`` is (3, 3) scratch.
+    """
+    for i in range(3):
+        for j in range(3):
+            v[i, j] = 1.0 if i == j else 0.0
+    for _sweep in range(50):
+        off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+        diag = a[0, 0] * a[0, 0] + a[1, 1] * a[1, 1] + a[2, 2] * a[2, 2]
+        if off <= 1e-32 * diag or off == 0.0:
+            break
+        for pair in range(3):
+            p = 0 if pair < 2 else 1
+            q = 1 if pair == 0 else 2
+            apq = a[p, q]
+            if apq == 0.0:
+                continue
+            theta = (a[q, q] - a[p, p]) / (2.0 * apq)
+            t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+            if theta < 0.0:
+                t = -t
+            c = 1.0 / math.sqrt(t * t + 1.0)
+            s = t * c
+            # a <- R^T a R and v <- v R, R the plane rotation that zeroes a[p, q].
+            for i in range(3):
+                aip = a[i, p]
+                aiq = a[i, q]
+                r[i, p] = c * aip - s * aiq
+                r[i, q] = s * aip + c * aiq
+                r[i, 3 - p - q] = a[i, 3 - p - q]
+            for j in range(3):
+                rpj = r[p, j]
+                rqj = r[q, j]
+                a[p, j] = c * rpj - s * rqj
+                a[q, j] = s * rpj + c * rqj
+                a[3 - p - q, j] = r[3 - p - q, j]
+            a[p, q] = 0.0
+            a[q, p] = 0.0
+            for i in range(3):
+                vip = v[i, p]
+                viq = v[i, q]
+                v[i, p] = c * vip - s * viq
+                v[i, q] = s * vip + c * viq
+    for i in range(3):
+        w[i] = a[i, i]
+
+
+@nb.njit(**_JIT)
+def _negative_modes(
+    f: np.ndarray,
+    mu: float,
+    dpsi: float,
+    ddpsi: float,
+    scratch: np.ndarray,
+    vec: np.ndarray,
+    out_value: np.ndarray,
+    out_matrix: np.ndarray,
+) -> int:
+    """Negative eigenpairs of dP/dF for W = mu/2 (I_C - 3) + psi(J) (Smith et al. 2018).
+
+    In the rotation-variant SVD F = U diag(s) V^T (U, V rotations, s_2 signed), dP/dF is
+    block diagonal (Smith, de Goes & Kim 2018, ACM TOG 37(2):12, sec. 4-5):
+
+    * for each pair (i, j) with third index k, a twist mode Q = (u_i v_j^T - u_j v_i^T)/sqrt2
+      with eigenvalue mu + psi' s_k and a flip mode Q = (u_i v_j^T + u_j v_i^T)/sqrt2 with
+      eigenvalue mu - psi' s_k;
+    * three scaling modes Q = sum_k z_k u_k v_k^T, z the eigenvectors of the 3x3 matrix
+      mu I + psi'' g g^T + psi' A, g = (s1 s2, s0 s2, s0 s1), A = [[0,s2,s1],[s2,0,s0],[s1,s0,0]].
+
+    A sufficient PSD test runs first: with psi'' >= 0 all eigenvalues are >= mu - 2 |psi'|
+    s_max (Gershgorin on A), and s_max^2 <= the Gershgorin bound of C = F^T F. Near rest
+    the twist eigenvalues mu (1 - s_k) are ~0 and of either sign, so most deformed tets
+    need the (cheap, 3x3 Jacobi) decomposition anyway.
+
+    Args:
+        f: F, flat row-major (9,).
+        mu, dpsi, ddpsi: mu [Pa], psi'(J) [Pa], psi''(J) [Pa].
+        scratch: (6, 3, 3) and vec: (3, 3) work space.
+        out_value: eigenvalues < 0 [Pa], (MAX_NEGATIVE_MODES,).
+        out_matrix: their unit eigen-matrices Q, flat row-major, (MAX_NEGATIVE_MODES, 9).
+
+    Returns:
+        the number of negative modes written.
+    """
+    c = scratch[0]
+    vm = scratch[1]
+    um = scratch[2]
+    r = scratch[3]
+    sblock = scratch[4]
+    zm = scratch[5]
+    for i in range(3):
+        for j in range(3):
+            c[i, j] = f[i] * f[j] + f[3 + i] * f[3 + j] + f[6 + i] * f[6 + j]
+    gersh = 0.0
+    for i in range(3):
+        row = abs(c[i, 0]) + abs(c[i, 1]) + abs(c[i, 2])
+        gersh = max(gersh, row)
+    if ddpsi >= 0.0 and 2.0 * abs(dpsi) * math.sqrt(gersh) <= mu:
+        return 0
+    w = vec[0]
+    _sym3_eigen(c, w, vm, r)
+    # Sort descending (insertion sort on 3 entries), carrying the eigenvector columns.
+    for i in range(1, 3):
+        j = i
+        while j > 0 and w[j] > w[j - 1]:
+            w[j], w[j - 1] = w[j - 1], w[j]
+            for k in range(3):
+                vm[k, j], vm[k, j - 1] = vm[k, j - 1], vm[k, j]
+            j -= 1
+    det_v = (
+        vm[0, 0] * (vm[1, 1] * vm[2, 2] - vm[1, 2] * vm[2, 1])
+        - vm[0, 1] * (vm[1, 0] * vm[2, 2] - vm[1, 2] * vm[2, 0])
+        + vm[0, 2] * (vm[1, 0] * vm[2, 1] - vm[1, 1] * vm[2, 0])
+    )
+    if det_v < 0.0:
+        for k in range(3):
+            vm[k, 2] = -vm[k, 2]
+    # F v_k, columns of r.
+    for k in range(3):
+        for i in range(3):
+            r[i, k] = f[3 * i] * vm[0, k] + f[3 * i + 1] * vm[1, k] + f[3 * i + 2] * vm[2, k]
+    scale = math.sqrt(max(w[0], 0.0) + max(w[1], 0.0) + max(w[2], 0.0))
+    s = vec[1]
+    s[0] = 0.0
+    s[1] = 0.0
+    s[2] = 0.0
+    if scale == 0.0:
+        for i in range(3):
+            for j in range(3):
+                um[i, j] = vm[i, j]
+    else:
+        n0 = math.sqrt(r[0, 0] ** 2 + r[1, 0] ** 2 + r[2, 0] ** 2)
+        for i in range(3):
+            um[i, 0] = r[i, 0] / n0
+        s[0] = n0
+        d = um[0, 0] * r[0, 1] + um[1, 0] * r[1, 1] + um[2, 0] * r[2, 1]
+        for i in range(3):
+            um[i, 1] = r[i, 1] - d * um[i, 0]
+        n1 = math.sqrt(um[0, 1] ** 2 + um[1, 1] ** 2 + um[2, 1] ** 2)
+        if n1 > 1e-12 * scale:
+            for i in range(3):
+                um[i, 1] /= n1
+            s[1] = n1
+        else:
+            # F is (nearly) rank one: any unit vector orthogonal to u0 completes U.
+            k = 0
+            if abs(um[1, 0]) < abs(um[k, 0]):
+                k = 1
+            if abs(um[2, 0]) < abs(um[k, 0]):
+                k = 2
+            e = vec[2]
+            e[0] = 0.0
+            e[1] = 0.0
+            e[2] = 0.0
+            e[k] = 1.0
+            d = um[k, 0]
+            for i in range(3):
+                um[i, 1] = e[i] - d * um[i, 0]
+            n1 = math.sqrt(um[0, 1] ** 2 + um[1, 1] ** 2 + um[2, 1] ** 2)
+            for i in range(3):
+                um[i, 1] /= n1
+            s[1] = 0.0
+        um[0, 2] = um[1, 0] * um[2, 1] - um[2, 0] * um[1, 1]
+        um[1, 2] = um[2, 0] * um[0, 1] - um[0, 0] * um[2, 1]
+        um[2, 2] = um[0, 0] * um[1, 1] - um[1, 0] * um[0, 1]
+        # Signed: negative for an inverted tet, so that J = s0 s1 s2 with U, V rotations.
+        s[2] = um[0, 2] * r[0, 2] + um[1, 2] * r[1, 2] + um[2, 2] * r[2, 2]
+
+    tol = -_CLAMP_TOLERANCE * mu
+    count = 0
+    inv_sqrt2 = 1.0 / math.sqrt(2.0)
+    for pair in range(3):
+        i = 0 if pair < 2 else 1
+        j = 1 if pair == 0 else 2
+        k = 3 - i - j
+        for sign in (-1.0, 1.0):
+            # sign -1: twist (antisymmetric), eigenvalue mu + psi' s_k; +1: flip.
+            lam = mu - sign * dpsi * s[k]
+            if lam < tol and count < MAX_NEGATIVE_MODES:
+                out_value[count] = lam
+                for p in range(3):
+                    for q in range(3):
+                        out_matrix[count, 3 * p + q] = inv_sqrt2 * (
+                            um[p, i] * vm[q, j] + sign * um[p, j] * vm[q, i]
+                        )
+                count += 1
+    g0 = s[1] * s[2]
+    g1 = s[0] * s[2]
+    g2 = s[0] * s[1]
+    sblock[0, 0] = mu + ddpsi * g0 * g0
+    sblock[1, 1] = mu + ddpsi * g1 * g1
+    sblock[2, 2] = mu + ddpsi * g2 * g2
+    sblock[0, 1] = sblock[1, 0] = ddpsi * g0 * g1 + dpsi * s[2]
+    sblock[0, 2] = sblock[2, 0] = ddpsi * g0 * g2 + dpsi * s[1]
+    sblock[1, 2] = sblock[2, 1] = ddpsi * g1 * g2 + dpsi * s[0]
+    _sym3_eigen(sblock, w, zm, r)
+    for m in range(3):
+        if w[m] < tol and count < MAX_NEGATIVE_MODES:
+            out_value[count] = w[m]
+            for p in range(3):
+                for q in range(3):
+                    out_matrix[count, 3 * p + q] = (
+                        zm[0, m] * um[p, 0] * vm[q, 0]
+                        + zm[1, m] * um[p, 1] * vm[q, 1]
+                        + zm[2, m] * um[p, 2] * vm[q, 2]
+                    )
+            count += 1
+    return count
+
+
+# ----------------------------------------------------------------------------------------
+# Element pass
+
+
+@nb.njit(parallel=True, **_JIT)
+def volume_ratios(x: np.ndarray, tets: np.ndarray, grads: np.ndarray, out: np.ndarray) -> None:
+    """J = det F per tet into ``out`` (tet_count,), from positions x [m] (node_count, 3)."""
+    tet_count = tets.shape[0]
+    for chunk in nb.prange((tet_count + _CHUNK - 1) // _CHUNK):
+        f = np.empty(9)
+        for e in range(chunk * _CHUNK, min(tet_count, (chunk + 1) * _CHUNK)):
+            _deformation(x, tets, grads, e, f)
+            out[e] = (
+                f[0] * (f[4] * f[8] - f[5] * f[7])
+                - f[1] * (f[3] * f[8] - f[5] * f[6])
+                + f[2] * (f[3] * f[7] - f[4] * f[6])
+            )
+
+
+@nb.njit(inline="always", **_JIT)
+def _deformation(x: np.ndarray, tets: np.ndarray, grads: np.ndarray, e: int, f: np.ndarray) -> None:
+    for i in range(9):
+        f[i] = 0.0
+    for a in range(4):
+        n = tets[e, a]
+        for i in range(3):
+            xi = x[n, i]
+            for j in range(3):
+                f[3 * i + j] += xi * grads[e, a, j]
+
+
+@nb.njit(parallel=True, **_JIT)
+def element_pass(
+    x: np.ndarray,
+    tets: np.ndarray,
+    grads: np.ndarray,
+    volume: np.ndarray,
+    mu: np.ndarray,
+    lam: np.ndarray,
+    pressure: np.ndarray,
+    law: int,
+    project: bool,
+    deformation: np.ndarray,
+    cofactor: np.ndarray,
+    coef: np.ndarray,
+    energy: np.ndarray,
+    ratio: np.ndarray,
+    mode_count: np.ndarray,
+    mode_value: np.ndarray,
+    mode_matrix: np.ndarray,
+) -> None:
+    """Per-tet F, cof F, energy and the scalars the assembly needs.
+
+    Energy density W = mu/2 (I_C - 3) + psi(J) with
+
+    * stable: psi = lam'/2 (J - alpha)^2 - mu^2/(2 lam'), lam' = lam + mu,
+      alpha = 1 + mu/lam' (the constant makes W(I) = 0; it changes no force);
+    * classic: psi = -mu ln J + lam/2 (ln J)^2; J <= 0 gives W = inf and a zero
+      contribution (coef = 0) instead of NaN.
+
+    ``pressure`` [Pa] is added to psi'(J) (ANP's averaged nodal pressure; zeros otherwise).
+
+    Writes, per tet e: deformation[e] = F (9,), cofactor[e] = cof F = dJ/dF (9,),
+    coef[e] = (V mu, V (psi' + pressure), V psi'') [J], energy[e] = V W [J], ratio[e] = J,
+    and with ``project`` the negative modes of dP/dF (count, V * eigenvalue, Q).
+    """
+    tet_count = tets.shape[0]
+    chunk_count = (tet_count + _CHUNK - 1) // _CHUNK
+    for chunk in nb.prange(chunk_count):
+        scratch = np.empty((6, 3, 3))
+        vec = np.empty((3, 3))
+        values = np.empty(MAX_NEGATIVE_MODES)
+        matrices = np.empty((MAX_NEGATIVE_MODES, 9))
+        f = np.empty(9)
+        for e in range(chunk * _CHUNK, min(tet_count, (chunk + 1) * _CHUNK)):
+            _deformation(x, tets, grads, e, f)
+            # cof F: columns are f1 x f2, f2 x f0, f0 x f1 (f_j the columns of F).
+            c00 = f[4] * f[8] - f[7] * f[5]
+            c10 = f[7] * f[2] - f[1] * f[8]
+            c20 = f[1] * f[5] - f[4] * f[2]
+            c01 = f[5] * f[6] - f[8] * f[3]
+            c11 = f[8] * f[0] - f[2] * f[6]
+            c21 = f[2] * f[3] - f[5] * f[0]
+            c02 = f[3] * f[7] - f[6] * f[4]
+            c12 = f[6] * f[1] - f[0] * f[7]
+            c22 = f[0] * f[4] - f[3] * f[1]
+            jac = f[0] * c00 + f[3] * c10 + f[6] * c20
+            ic = 0.0
+            for i in range(9):
+                ic += f[i] * f[i]
+            m = mu[e]
+            lm = lam[e]
+            vol = volume[e]
+            if law == LAW_STABLE:
+                lp = lm + m
+                alpha = 1.0 + m / lp
+                w = 0.5 * m * (ic - 3.0) + 0.5 * lp * (jac - alpha) ** 2 - 0.5 * m * m / lp
+                dpsi = lp * (jac - alpha) + pressure[e]
+                ddpsi = lp
+                mm = m
+            elif jac > 0.0:
+                lnj = math.log(jac)
+                w = 0.5 * m * (ic - 3.0) - m * lnj + 0.5 * lm * lnj * lnj
+                dpsi = (lm * lnj - m) / jac + pressure[e]
+                ddpsi = (lm * (1.0 - lnj) + m) / (jac * jac)
+                mm = m
+            else:
+                w = np.inf
+                dpsi = 0.0
+                ddpsi = 0.0
+                mm = 0.0
+            for i in range(9):
+                deformation[e, i] = f[i]
+            cofactor[e, 0] = c00
+            cofactor[e, 1] = c01
+            cofactor[e, 2] = c02
+            cofactor[e, 3] = c10
+            cofactor[e, 4] = c11
+            cofactor[e, 5] = c12
+            cofactor[e, 6] = c20
+            cofactor[e, 7] = c21
+            cofactor[e, 8] = c22
+            coef[e, 0] = vol * mm
+            coef[e, 1] = vol * dpsi
+            coef[e, 2] = vol * ddpsi
+            energy[e] = vol * w
+            ratio[e] = jac
+            if project:
+                count = 0
+                if mm > 0.0:
+                    count = _negative_modes(f, mm, dpsi, ddpsi, scratch, vec, values, matrices)
+                mode_count[e] = count
+                for k in range(count):
+                    mode_value[e, k] = vol * values[k]
+                    for i in range(9):
+                        mode_matrix[e, k, i] = matrices[k, i]
+
+
+# ----------------------------------------------------------------------------------------
+# Row-parallel gather
+
+
+@nb.njit(parallel=True, **_JIT)
+def gather_elements(
+    tets: np.ndarray,
+    grads: np.ndarray,
+    incidence_ptr: np.ndarray,
+    incidence_tet: np.ndarray,
+    incidence_local: np.ndarray,
+    deformation: np.ndarray,
+    cofactor: np.ndarray,
+    coef: np.ndarray,
+    project: bool,
+    mode_count: np.ndarray,
+    mode_value: np.ndarray,
+    mode_matrix: np.ndarray,
+    block_ptr: np.ndarray,
+    tet_block_pos: np.ndarray,
+    tangent: bool,
+    forces: np.ndarray,
+    data: np.ndarray,
+) -> None:
+    """Nodal forces -dE/dx [N] into ``forces`` and element blocks [N/m] added to ``data``.
+
+    One node row per parallel iteration: for every tet e touching node b (local index a),
+    f_b -= V (mu F + psi' cof F) G_a and, for each local c, the 3x3 block K_ac (module
+    docstring) minus the projected-out modes V lambda_m (Q_m G_a)(Q_m G_c)^T.
+    """
+    node_count = incidence_ptr.shape[0] - 1
+    for chunk in nb.prange((node_count + _CHUNK - 1) // _CHUNK):
+        blk = np.empty(9)
+        for b in range(chunk * _CHUNK, min(node_count, (chunk + 1) * _CHUNK)):
+            fx = 0.0
+            fy = 0.0
+            fz = 0.0
+            row_base = 9 * block_ptr[b]
+            stride = 3 * (block_ptr[b + 1] - block_ptr[b])
+            for k in range(incidence_ptr[b], incidence_ptr[b + 1]):
+                e = incidence_tet[k]
+                la = incidence_local[k]
+                vmu = coef[e, 0]
+                vdpsi = coef[e, 1]
+                vddpsi = coef[e, 2]
+                ga0 = grads[e, la, 0]
+                ga1 = grads[e, la, 1]
+                ga2 = grads[e, la, 2]
+                fga0 = deformation[e, 0] * ga0 + deformation[e, 1] * ga1 + deformation[e, 2] * ga2
+                fga1 = deformation[e, 3] * ga0 + deformation[e, 4] * ga1 + deformation[e, 5] * ga2
+                fga2 = deformation[e, 6] * ga0 + deformation[e, 7] * ga1 + deformation[e, 8] * ga2
+                cga0 = cofactor[e, 0] * ga0 + cofactor[e, 1] * ga1 + cofactor[e, 2] * ga2
+                cga1 = cofactor[e, 3] * ga0 + cofactor[e, 4] * ga1 + cofactor[e, 5] * ga2
+                cga2 = cofactor[e, 6] * ga0 + cofactor[e, 7] * ga1 + cofactor[e, 8] * ga2
+                fx -= vmu * fga0 + vdpsi * cga0
+                fy -= vmu * fga1 + vdpsi * cga1
+                fz -= vmu * fga2 + vdpsi * cga2
+                if not tangent:
+                    continue
+                for lc in range(4):
+                    gc0 = grads[e, lc, 0]
+                    gc1 = grads[e, lc, 1]
+                    gc2 = grads[e, lc, 2]
+                    cgc0 = cofactor[e, 0] * gc0 + cofactor[e, 1] * gc1 + cofactor[e, 2] * gc2
+                    cgc1 = cofactor[e, 3] * gc0 + cofactor[e, 4] * gc1 + cofactor[e, 5] * gc2
+                    cgc2 = cofactor[e, 6] * gc0 + cofactor[e, 7] * gc1 + cofactor[e, 8] * gc2
+                    dot = vmu * (ga0 * gc0 + ga1 * gc1 + ga2 * gc2)
+                    # w = F (G_a x G_c); zero when a == c.
+                    x0 = ga1 * gc2 - ga2 * gc1
+                    x1 = ga2 * gc0 - ga0 * gc2
+                    x2 = ga0 * gc1 - ga1 * gc0
+                    w0 = vdpsi * (
+                        deformation[e, 0] * x0 + deformation[e, 1] * x1 + deformation[e, 2] * x2
+                    )
+                    w1 = vdpsi * (
+                        deformation[e, 3] * x0 + deformation[e, 4] * x1 + deformation[e, 5] * x2
+                    )
+                    w2 = vdpsi * (
+                        deformation[e, 6] * x0 + deformation[e, 7] * x1 + deformation[e, 8] * x2
+                    )
+                    blk[0] = dot + vddpsi * (cga0 * cgc0)
+                    blk[1] = vddpsi * (cga0 * cgc1) + w2
+                    blk[2] = vddpsi * (cga0 * cgc2) - w1
+                    blk[3] = vddpsi * (cga1 * cgc0) - w2
+                    blk[4] = dot + vddpsi * (cga1 * cgc1)
+                    blk[5] = vddpsi * (cga1 * cgc2) + w0
+                    blk[6] = vddpsi * (cga2 * cgc0) + w1
+                    blk[7] = vddpsi * (cga2 * cgc1) - w0
+                    blk[8] = dot + vddpsi * (cga2 * cgc2)
+                    if project:
+                        for mode in range(mode_count[e]):
+                            val = mode_value[e, mode]
+                            qa0 = (
+                                mode_matrix[e, mode, 0] * ga0
+                                + mode_matrix[e, mode, 1] * ga1
+                                + mode_matrix[e, mode, 2] * ga2
+                            )
+                            qa1 = (
+                                mode_matrix[e, mode, 3] * ga0
+                                + mode_matrix[e, mode, 4] * ga1
+                                + mode_matrix[e, mode, 5] * ga2
+                            )
+                            qa2 = (
+                                mode_matrix[e, mode, 6] * ga0
+                                + mode_matrix[e, mode, 7] * ga1
+                                + mode_matrix[e, mode, 8] * ga2
+                            )
+                            qc0 = (
+                                mode_matrix[e, mode, 0] * gc0
+                                + mode_matrix[e, mode, 1] * gc1
+                                + mode_matrix[e, mode, 2] * gc2
+                            )
+                            qc1 = (
+                                mode_matrix[e, mode, 3] * gc0
+                                + mode_matrix[e, mode, 4] * gc1
+                                + mode_matrix[e, mode, 5] * gc2
+                            )
+                            qc2 = (
+                                mode_matrix[e, mode, 6] * gc0
+                                + mode_matrix[e, mode, 7] * gc1
+                                + mode_matrix[e, mode, 8] * gc2
+                            )
+                            blk[0] -= val * (qa0 * qc0)
+                            blk[1] -= val * (qa0 * qc1)
+                            blk[2] -= val * (qa0 * qc2)
+                            blk[3] -= val * (qa1 * qc0)
+                            blk[4] -= val * (qa1 * qc1)
+                            blk[5] -= val * (qa1 * qc2)
+                            blk[6] -= val * (qa2 * qc0)
+                            blk[7] -= val * (qa2 * qc1)
+                            blk[8] -= val * (qa2 * qc2)
+                    pos = row_base + 3 * tet_block_pos[e, la, lc]
+                    for i in range(3):
+                        for j in range(3):
+                            data[pos + i * stride + j] += blk[3 * i + j]
+            forces[b, 0] = fx
+            forces[b, 1] = fy
+            forces[b, 2] = fz
+
+
+# ----------------------------------------------------------------------------------------
+# Average nodal pressure (Bonet & Burton 1998)
+
+
+@nb.njit(parallel=True, **_JIT)
+def anp_patch_pass(
+    ratio: np.ndarray,
+    patch_tet_ptr: np.ndarray,
+    patch_tet: np.ndarray,
+    patch_tet_weight: np.ndarray,
+    patch_volume: np.ndarray,
+    patch_lam: np.ndarray,
+    law: int,
+    project: bool,
+    patch_ratio: np.ndarray,
+    patch_dpsi: np.ndarray,
+    patch_ddpsi: np.ndarray,
+    patch_energy: np.ndarray,
+) -> None:
+    """Nodal volume ratio J_a, U'(J_a) [Pa], V_a U''(J_a) [J] and energy V_a U(J_a) [J].
+
+    U(J) = lam/2 (J - 1)^2 (stable) or lam/2 (ln J)^2 (classic; J_a <= 0 gives inf and
+    zero derivatives). With ``project`` a negative U'' is clamped to 0 (the nodal term
+    V_a U'' gJ gJ^T is then PSD; the U' d2J part is handed to the tets, see the class).
+    """
+    for a in nb.prange(patch_tet_ptr.shape[0] - 1):
+        ja = 0.0
+        for k in range(patch_tet_ptr[a], patch_tet_ptr[a + 1]):
+            ja += patch_tet_weight[k] * ratio[patch_tet[k]]
+        lm = patch_lam[a]
+        if law == LAW_STABLE:
+            u = 0.5 * lm * (ja - 1.0) ** 2
+            du = lm * (ja - 1.0)
+            ddu = lm
+        elif ja > 0.0:
+            lnj = math.log(ja)
+            u = 0.5 * lm * lnj * lnj
+            du = lm * lnj / ja
+            ddu = lm * (1.0 - lnj) / (ja * ja)
+        else:
+            u = np.inf
+            du = 0.0
+            ddu = 0.0
+        if project and ddu < 0.0:
+            ddu = 0.0
+        patch_ratio[a] = ja
+        patch_dpsi[a] = du
+        patch_ddpsi[a] = patch_volume[a] * ddu
+        patch_energy[a] = patch_volume[a] * u
+
+
+@nb.njit(parallel=True, **_JIT)
+def anp_patch_gradients(
+    grads: np.ndarray,
+    cofactor: np.ndarray,
+    patch_tet_ptr: np.ndarray,
+    patch_tet: np.ndarray,
+    patch_tet_weight: np.ndarray,
+    patch_tet_local: np.ndarray,
+    patch_node_ptr: np.ndarray,
+    gradient: np.ndarray,
+) -> None:
+    """dJ_a/dx over each patch's nodes into ``gradient`` (patch node entries, 3) [1/m].
+
+    J_a = sum_e w_e J_e with w_e = V_e / (4 V_a), and dJ_e/dx_c = cof F_e G_c.
+    """
+    for a in nb.prange(patch_tet_ptr.shape[0] - 1):
+        base = patch_node_ptr[a]
+        for k in range(base, patch_node_ptr[a + 1]):
+            gradient[k, 0] = 0.0
+            gradient[k, 1] = 0.0
+            gradient[k, 2] = 0.0
+        for k in range(patch_tet_ptr[a], patch_tet_ptr[a + 1]):
+            e = patch_tet[k]
+            wt = patch_tet_weight[k]
+            for lc in range(4):
+                row = base + patch_tet_local[k, lc]
+                g0 = grads[e, lc, 0]
+                g1 = grads[e, lc, 1]
+                g2 = grads[e, lc, 2]
+                for i in range(3):
+                    gradient[row, i] += wt * (
+                        cofactor[e, 3 * i] * g0
+                        + cofactor[e, 3 * i + 1] * g1
+                        + cofactor[e, 3 * i + 2] * g2
+                    )
+
+
+@nb.njit(parallel=True, **_JIT)
+def anp_gather_blocks(
+    node_patch_ptr: np.ndarray,
+    node_patch: np.ndarray,
+    node_patch_local: np.ndarray,
+    patch_node_ptr: np.ndarray,
+    patch_pair_ptr: np.ndarray,
+    patch_pair_pos: np.ndarray,
+    gradient: np.ndarray,
+    patch_ddpsi: np.ndarray,
+    block_ptr: np.ndarray,
+    data: np.ndarray,
+) -> None:
+    """Add the nodal terms V_a U''(J_a) gJ_a gJ_a^T to ``data``, one node row per iteration."""
+    for b in nb.prange(node_patch_ptr.shape[0] - 1):
+        row_base = 9 * block_ptr[b]
+        stride = 3 * (block_ptr[b + 1] - block_ptr[b])
+        for k in range(node_patch_ptr[b], node_patch_ptr[b + 1]):
+            a = node_patch[k]
+            s = patch_ddpsi[a]
+            if s == 0.0:
+                continue
+            lb = node_patch_local[k]
+            base = patch_node_ptr[a]
+            n = patch_node_ptr[a + 1] - base
+            # s * (ga_i * gc_k), not (s * ga_i) * gc_k: keeps K bitwise symmetric.
+            ga0 = gradient[base + lb, 0]
+            ga1 = gradient[base + lb, 1]
+            ga2 = gradient[base + lb, 2]
+            pair_base = patch_pair_ptr[a] + lb * n
+            for lc in range(n):
+                gc0 = gradient[base + lc, 0]
+                gc1 = gradient[base + lc, 1]
+                gc2 = gradient[base + lc, 2]
+                pos = row_base + 3 * patch_pair_pos[pair_base + lc]
+                data[pos] += s * (ga0 * gc0)
+                data[pos + 1] += s * (ga0 * gc1)
+                data[pos + 2] += s * (ga0 * gc2)
+                data[pos + stride] += s * (ga1 * gc0)
+                data[pos + stride + 1] += s * (ga1 * gc1)
+                data[pos + stride + 2] += s * (ga1 * gc2)
+                data[pos + 2 * stride] += s * (ga2 * gc0)
+                data[pos + 2 * stride + 1] += s * (ga2 * gc1)
+                data[pos + 2 * stride + 2] += s * (ga2 * gc2)
+
+
+@nb.njit(cache=True)
+def patch_pair_positions(
+    patch_node_ptr: np.ndarray,
+    patch_nodes: np.ndarray,
+    block_ptr: np.ndarray,
+    block_cols: np.ndarray,
+    patch_pair_ptr: np.ndarray,
+    out: np.ndarray,
+) -> None:
+    """Block position in node row patch_nodes[lb] of column patch_nodes[lc], per patch pair."""
+    for a in range(patch_node_ptr.shape[0] - 1):
+        base = patch_node_ptr[a]
+        n = patch_node_ptr[a + 1] - base
+        for lb in range(n):
+            b = patch_nodes[base + lb]
+            row = block_cols[block_ptr[b] : block_ptr[b + 1]]
+            for lc in range(n):
+                out[patch_pair_ptr[a] + lb * n + lc] = np.searchsorted(row, patch_nodes[base + lc])
