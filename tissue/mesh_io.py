@@ -11,6 +11,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import os
 import re
@@ -159,7 +161,9 @@ def load_tet_mesh(
     if fixed_plane is not None:
         parse_fixed_plane(fixed_plane)
     try:
-        data = meshio.read(path)
+        # meshio's gmsh reader prints stray blank lines; a library must not.
+        with contextlib.redirect_stdout(io.StringIO()):
+            data = meshio.read(path)
     except Exception as error:  # meshio raises many types; the user needs the file and why
         raise MeshError(f"meshio cannot read {str(path)!r}: {error}") from error
 
@@ -292,10 +296,11 @@ def write_mesh(
         field_data=field_data,
     )
     path.parent.mkdir(parents=True, exist_ok=True)
-    if path.suffix.lower() == ".msh":
-        meshio.write(path, out, file_format="gmsh", binary=False)
-    else:
-        meshio.write(path, out)
+    with contextlib.redirect_stdout(io.StringIO()):
+        if path.suffix.lower() == ".msh":
+            meshio.write(path, out, file_format="gmsh", binary=False)
+        else:
+            meshio.write(path, out)
     return path
 
 

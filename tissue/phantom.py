@@ -562,13 +562,17 @@ def calibrate_size(
     initial_size: float,
     what: str,
     dimension: int = 3,
+    trusted_initial: bool = False,
 ) -> tuple[Any, float, int]:
     """Find a characteristic length giving ``target`` elements, by repeated meshing.
 
     Each step scales the size by (count / target)^(1 / slope), the slope of log count over
     log size measured on the last two meshes (``-dimension`` at first, clipped to
     [-2 dimension, -dimension / 2] so that the discrete jumps of coarse meshes cannot send
-    it far). It stops within 3 % of the target; otherwise it keeps the closest mesh.
+    it far). It stops within 3 % of the target; otherwise it keeps the closest mesh. A
+    ``trusted_initial`` size (a stored calibration) is kept if within
+    :data:`LEVEL_TOLERANCE`: counts jump with the size, and a stored size was already the
+    best found.
 
     Returns:
         (mesh, size, attempts) for the closest mesh.
@@ -585,7 +589,9 @@ def calibrate_size(
         error = abs(count / target - 1.0)
         if best is None or error < best[0]:
             best = (error, result, size)
-        if error <= _CALIBRATION_ACCEPT:
+        if error <= _CALIBRATION_ACCEPT or (
+            trusted_initial and not history and error <= LEVEL_TOLERANCE
+        ):
             break
         history.append((size, count))
         slope = -float(dimension)
@@ -614,6 +620,7 @@ def _generate_phantom(level: int, spec: PhantomSpec, verbose: bool) -> TetMesh:
     shape = _LESION_SHAPE_BY_LEVEL.get(level, "sphere")
     is_default = spec == PhantomSpec()
     initial = _CALIBRATED_SIZE_M.get(level) if is_default else None
+    trusted = initial is not None
     if initial is None:
         # Regular tets of volume V / N have edge (6 sqrt(2) V / N)^(1/3); gmsh's are a bit
         # smaller for the same size setting.
@@ -626,6 +633,7 @@ def _generate_phantom(level: int, spec: PhantomSpec, verbose: bool) -> TetMesh:
         level,
         initial,
         f"the phantom at level {level}",
+        trusted_initial=trusted,
     )
     vertices, triangles = phantom_collision_surface(spec, verbose=verbose)
     fixed = np.flatnonzero(np.abs(raw.nodes[:, 2]) <= 1e-9 * spec.length_m)
