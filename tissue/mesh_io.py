@@ -245,8 +245,9 @@ def write_mesh(
 ) -> Path:
     """Write a mesh, at rest or deformed, to any format meshio knows (by the path's suffix).
 
-    The tets carry a ``region`` cell array (label per tet); in gmsh files also physical
-    groups (tag = label + 1, named after ``mesh.region_names``). Points carry ``fixed``
+    The tets carry a ``region`` cell array (label per tet); gmsh files (binary gmsh 4.1)
+    also carry the region names (physical names, tag = label + 1), which other formats
+    lose (they come back as ``"tissue"``, ``"region_1"``, ...). Points carry ``fixed``
     (1 on fixed nodes) and, when ``positions`` is given, ``displacement`` [m].
 
     Args:
@@ -298,7 +299,8 @@ def write_mesh(
     path.parent.mkdir(parents=True, exist_ok=True)
     with contextlib.redirect_stdout(io.StringIO()):
         if path.suffix.lower() == ".msh":
-            meshio.write(path, out, file_format="gmsh", binary=False)
+            # meshio 5.3 writes ASCII gmsh 4.1 data blocks it cannot read back; binary is safe.
+            meshio.write(path, out, file_format="gmsh", binary=True)
         else:
             meshio.write(path, out)
     return path
