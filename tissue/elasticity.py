@@ -156,7 +156,15 @@ class Elasticity:
         self.law = MaterialLaw.parse(materials.law)
         self._law_code = kern.LAW_STABLE if self.law is MaterialLaw.STABLE else kern.LAW_CLASSIC
         self.mesh = mesh
-        tets = np.ascontiguousarray(mesh.tets, dtype=np.int64)
+        # Internally the tets are sorted along a Morton curve of their nodes and the node
+        # rows are gathered in Morton order: the four visits of a tet then fall close in
+        # time (cache reuse). Results are returned in the mesh's own tet order.
+        rank = _morton_rank(mesh.nodes)
+        self._node_order = np.argsort(rank).astype(np.int64)
+        self._tet_order = np.argsort(rank[mesh.tets].min(axis=1), kind="stable")
+        tets = np.ascontiguousarray(mesh.tets[self._tet_order], dtype=np.int64)
+        region = np.asarray(mesh.region, dtype=np.int64)[self._tet_order]
+        self._region = region
         self._tets = tets
         self.node_count = mesh.node_count
         self.dof_count = 3 * self.node_count
@@ -164,7 +172,7 @@ class Elasticity:
         grads, volume = kern.shape_gradients(mesh.nodes, tets)
         self._grads = grads
         self._volume = volume
-        mu, lam, rho = materials.per_tet(mesh.region)
+        mu, lam, rho = materials.per_tet(region)
         self._mu = np.ascontiguousarray(mu)
         # ANP moves lam to the nodes: the per-tet law runs with lam = 0.
         anp = self.anti_locking is AntiLocking.ANP
@@ -195,9 +203,9 @@ class Elasticity:
         keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(block_ptr)) * n + block_cols
         query = np.repeat(tets, 4, axis=1) * n + np.tile(tets, (1, 4))
         pos = np.searchsorted(keys, query) - block_ptr[np.repeat(tets, 4, axis=1)]
-        self._tet_block_pos = pos.reshape(-1, 4, 4).astype(np.int64)
+        self._tet_block_pos = pos.reshape(-1, 4, 4).astype(np.int32)
         if anp:
-            self._patch_pair_pos = np.empty(int(self._patch_pair_ptr[-1]), dtype=np.int64)
+            self._patch_pair_pos = np.empty(int(self._patch_pair_ptr[-1]), dtype=np.int32)
             kern.patch_pair_positions(
                 self._patch_node_ptr,
                 self._patch_nodes,
@@ -217,10 +225,9 @@ class Elasticity:
         self._energy = np.empty(t)
         self._ratio = np.empty(t)
         self._no_pressure = np.zeros(t)
-        # Mode buffers are large (t x 60 doubles): allocated on the first projected call.
+        # Mode buffers are large (t x 72 doubles): allocated on the first projected call.
         self._mode_count = np.zeros(1, dtype=np.int64)
-        self._mode_value = np.zeros((1, kern.MAX_NEGATIVE_MODES))
-        self._mode_matrix = np.zeros((1, kern.MAX_NEGATIVE_MODES, 9))
+        self._mode_vector = np.zeros((1, kern.MAX_NEGATIVE_MODES, 12))
 
     # ------------------------------------------------------------------------------------
     # Public API
@@ -260,10 +267,10 @@ class Elasticity:
             self._coef,
             project,
             self._mode_count,
-            self._mode_value,
-            self._mode_matrix,
+            self._mode_vector,
             self._block_ptr,
             self._tet_block_pos,
+            self._node_order,
             bool(tangent),
             forces,
             data,
@@ -291,6 +298,7 @@ class Elasticity:
                     self._patch_gradient,
                     self._patch_ddpsi,
                     self._block_ptr,
+                    self._node_order,
                     data,
                 )
             stiffness = self._csr(data)
@@ -313,8 +321,10 @@ class Elasticity:
 
     def volume_ratios(self, positions: NDArray[np.float64]) -> NDArray[np.float64]:
         """J = det F per tet, shape (tet_count,), at node positions [m] (node_count, 3)."""
+        internal = np.empty(self.tet_count)
+        kern.volume_ratios(self._check_positions(positions), self._tets, self._grads, internal)
         out = np.empty(self.tet_count)
-        kern.volume_ratios(self._check_positions(positions), self._tets, self._grads, out)
+        out[self._tet_order] = internal
         return out
 
     # ------------------------------------------------------------------------------------
@@ -334,8 +344,7 @@ class Elasticity:
         if project and self._mode_count.shape[0] != self.tet_count:
             t = self.tet_count
             self._mode_count = np.zeros(t, dtype=np.int64)
-            self._mode_value = np.zeros((t, kern.MAX_NEGATIVE_MODES))
-            self._mode_matrix = np.zeros((t, kern.MAX_NEGATIVE_MODES, 9))
+            self._mode_vector = np.zeros((t, kern.MAX_NEGATIVE_MODES, 12))
         energy = 0.0
         pressure = self._no_pressure
         if self.anti_locking is AntiLocking.ANP:
@@ -372,8 +381,7 @@ class Elasticity:
             self._energy,
             self._ratio,
             self._mode_count,
-            self._mode_value,
-            self._mode_matrix,
+            self._mode_vector,
         )
         energy += float(self._energy.sum())
         return energy if math.isfinite(energy) else math.inf
@@ -394,7 +402,7 @@ class Elasticity:
     ) -> None:
         """ANP patches (node, region), their tets, nodes and volumes; maps for the gather."""
         n = self.node_count
-        region = np.asarray(self.mesh.region, dtype=np.int64)
+        region = self._region
         region_count = int(region.max()) + 1
         patch_key = tets * region_count + region[:, None]
         unique_keys, tet_patch = np.unique(patch_key.ravel(), return_inverse=True)
@@ -448,6 +456,20 @@ class Elasticity:
         graph = (incidence.T @ incidence).tocsr()
         graph.sort_indices()
         return graph.indptr.astype(np.int64), graph.indices.astype(np.int64)
+
+
+def _morton_rank(points: NDArray[np.float64]) -> NDArray[np.int64]:
+    """Rank of each point [m], shape (count, 3), along a 3-D Morton (Z-order) curve."""
+    low = points.min(axis=0)
+    extent = max(float(np.max(points.max(axis=0) - low)), 1e-300)
+    cells = np.minimum(((points - low) / extent * 1024.0).astype(np.int64), 1023)
+    code = np.zeros(points.shape[0], dtype=np.int64)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((cells[:, axis] >> bit) & 1) << (3 * bit + axis)
+    rank = np.empty(points.shape[0], dtype=np.int64)
+    rank[np.argsort(code, kind="stable")] = np.arange(points.shape[0])
+    return rank
 
 
 def _counts_to_ptr(counts: NDArray[np.int64]) -> NDArray[np.int64]:
