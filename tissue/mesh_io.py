@@ -160,12 +160,19 @@ def load_tet_mesh(
         raise ConfigError(f"scale={scale!r} must be a positive number (0.001 for mm files)")
     if fixed_plane is not None:
         parse_fixed_plane(fixed_plane)
+    messages = io.StringIO()
     try:
-        # meshio's gmsh reader prints stray blank lines; a library must not.
-        with contextlib.redirect_stdout(io.StringIO()):
+        # meshio prints each failed format attempt and calls sys.exit on a file no reader
+        # takes; a library must neither print nor exit, so both are caught here.
+        with contextlib.redirect_stdout(messages), contextlib.redirect_stderr(messages):
             data = meshio.read(path)
-    except Exception as error:  # meshio raises many types; the user needs the file and why
-        raise MeshError(f"meshio cannot read {str(path)!r}: {error}") from error
+    except (Exception, SystemExit) as error:  # meshio raises many types
+        detail = " ".join((str(error) if not isinstance(error, SystemExit) else "").split())
+        detail = detail or " ".join(messages.getvalue().split()) or "unknown format"
+        raise MeshError(
+            f"meshio cannot read {str(path)!r}: {detail}; give a tet mesh in a format meshio "
+            "reads (gmsh .msh, .vtu, .vtk, .mesh, ...)"
+        ) from None
 
     blocks = [i for i, block in enumerate(data.cells) if block.type == "tetra"]
     if not blocks:
