@@ -18,6 +18,7 @@ import os
 import re
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -216,20 +217,21 @@ def load_tet_mesh(
     )
 
 
-def _regions(data: object, blocks: list[int]) -> tuple[NDArray[np.int64], tuple[str, ...]]:
+def _regions(data: Any, blocks: list[int]) -> tuple[NDArray[np.int64], tuple[str, ...]]:
     """Region label per tet and region names from a meshio mesh's cell data."""
-    cell_data = data.cell_data  # type: ignore[attr-defined]
+    cell_data = data.cell_data
     for key in ("region", "gmsh:physical", "medit:ref"):
         if key in cell_data:
             values = np.concatenate([np.asarray(cell_data[key][i]) for i in blocks])
             values = values.astype(np.int64).reshape(-1)
             break
     else:
-        return np.zeros(sum(len(data.cells[i].data) for i in blocks), np.int64), ("tissue",)  # type: ignore[attr-defined]
+        tet_count = int(sum(len(data.cells[i].data) for i in blocks))
+        return np.zeros(tet_count, np.int64), ("tissue",)
 
     names_by_tag = {
         int(tag_dim[0]): name
-        for name, tag_dim in (data.field_data or {}).items()  # type: ignore[attr-defined]
+        for name, tag_dim in (data.field_data or {}).items()
         if len(np.atleast_1d(tag_dim)) >= 2 and int(np.atleast_1d(tag_dim)[1]) == 3
     }
     if key == "region":
@@ -340,7 +342,7 @@ def save_mesh_npz(mesh: TetMesh, path: str | Path) -> Path:
     handle, temporary = tempfile.mkstemp(prefix=path.name, suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(handle, "wb") as stream:
-            np.savez(stream, **arrays)
+            np.savez(stream, **arrays)  # type: ignore[arg-type]
         os.replace(temporary, path)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)

@@ -30,6 +30,7 @@ import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -122,7 +123,7 @@ def read_stl(path: str | Path) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     path = Path(path)
     if not path.is_file():
         raise MeshError(f"STL file {str(path)!r} does not exist")
-    raw = trimesh.load(path, file_type="stl", process=False, force="mesh")
+    raw: Any = trimesh.load(path, file_type="stl", process=False, force="mesh")
     corners = np.asarray(raw.vertices, dtype=np.float64)[np.asarray(raw.faces)].reshape(-1, 3)
     _, first, inverse = np.unique(corners, axis=0, return_index=True, return_inverse=True)
     inverse = inverse.reshape(-1)
@@ -197,8 +198,8 @@ def load_paper_scene(directory: str | Path) -> PaperScene:
                 f"but {COLLISION_FILE} has {collision_vertices.shape[0]}"
             )
         spring_nodes[number] = nodes
-    names = tuple(f"tumor{number}" for number in lesion_points)
-    mesh = mesh.with_landmarks(names, np.array(list(lesion_points.values())))
+    landmark_names = tuple(f"tumor{number}" for number in lesion_points)
+    mesh = mesh.with_landmarks(landmark_names, np.array(list(lesion_points.values())))
     probe_vertices, probe_triangles = read_stl(directory / PROBE_FILE)
     return PaperScene(
         mesh=mesh,

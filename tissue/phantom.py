@@ -29,13 +29,13 @@ about 3k tets (a sphere needs about 25 tets and its surroundings grade out from 
 coarse levels use regular polyhedra. What a lesion is at each level:
 
 ========  ========================================================================
-level     lesion representation (count measured with the default spec)
+level     lesion representation (tets per lesion, measured with the default spec)
 ========  ========================================================================
-623       regular tetrahedron: 1 tet per lesion (the level's tets are ~25 mm)
-1,363     regular octahedron: 4 tets per lesion
-2,539     regular icosahedron: 16-18 tets per lesion
-4,126+    sphere meshed at min(global size, 2 radii): 22-30 tets per lesion at 4,126
-          and 7,369, more from 26,220 on (about 50-150 at 105,004)
+623       regular tetrahedron: 1 tet (the level's tets are ~25 mm across)
+1,363     regular octahedron: 4 tets
+2,539     regular icosahedron: 16-17 tets
+4,126+    sphere meshed at min(global size, 2 radii): 21-30 tets up to 12,861,
+          23-52 at 26,220, 48-171 at 105,004, 50-262 at 176,506
 ========  ========================================================================
 
 Every polyhedron has the sphere's centre and exactly its volume, with one vertex straight
@@ -455,7 +455,8 @@ def gmsh_session(verbose: bool = False) -> Iterator[Any]:
 
     User configuration files are not read (they could change the mesh); meshing is single
     threaded (thread scheduling would reorder nodes). If the caller already had gmsh
-    initialised, a fresh model is used and removed, and gmsh is left initialised.
+    initialised, a fresh model is used and removed and gmsh is left initialised, with the
+    options above left set.
     """
     import gmsh
 
