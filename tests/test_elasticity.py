@@ -335,6 +335,51 @@ def test_projected_tangent_is_psd_where_the_exact_one_is_not(
     assert np.linalg.eigvalsh(k_proj).min() > -1e-10 * scale
 
 
+@pytest.mark.parametrize("law", LAWS)
+def test_projection_equals_explicit_clamp_of_dp_df(law: MaterialLaw) -> None:
+    """One tet: K_proj = V B^T clamp(dP/dF) B, dP/dF built and eigen-decomposed densely."""
+    rest = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0.012, 0], [0.001, 0.002, 0.009]])
+    mesh = TetMesh(
+        nodes=rest,
+        tets=np.array([[0, 1, 2, 3]]),
+        region=np.zeros(1, np.int64),
+        fixed_nodes=np.zeros(0, np.int64),
+    )
+    mat = materials(law)
+    mu, lam = mat.tissue.mu_pa, mat.tissue.lambda_pa
+    el = Elasticity(mesh, mat)
+    levi = np.zeros((3, 3, 3))
+    for i, j, k in itertools.permutations(range(3)):
+        levi[i, j, k] = np.linalg.det(np.eye(3)[[i, j, k]])
+    dm = (rest[1:] - rest[0]).T
+    grads = np.vstack([-np.linalg.inv(dm).sum(axis=0), np.linalg.inv(dm)])
+    volume = np.linalg.det(dm) / 6
+    b = np.zeros((9, 12))
+    for i, j, a in itertools.product(range(3), range(3), range(4)):
+        b[3 * i + j, 3 * a + i] = grads[a, j]
+    rng = np.random.default_rng(11)
+    gradients = [np.eye(3) + rng.normal(0.0, 0.4, (3, 3)) for _ in range(12)]
+    gradients += [np.diag([0.6, 1.3, 1.3]), np.diag([1.2, 1.2, 1.2]), np.diag([0.7, 0.7, 1.0])]
+    if law is MaterialLaw.STABLE:
+        gradients.append(np.diag([0.8, 1.1, -0.2]))  # inverted
+    for gradient in gradients:
+        jac = np.linalg.det(gradient)
+        if jac <= 0 and law is MaterialLaw.CLASSIC:
+            continue
+        cof = jac * np.linalg.inv(gradient).T
+        if law is MaterialLaw.STABLE:
+            dpsi, ddpsi = (lam + mu) * (jac - 1 - mu / (lam + mu)), lam + mu
+        else:
+            dpsi = (lam * np.log(jac) - mu) / jac
+            ddpsi = (lam * (1 - np.log(jac)) + mu) / jac**2
+        hessian_j = np.einsum("ikm,jln,mn->ijkl", levi, levi, gradient).reshape(9, 9)
+        dp_df = mu * np.eye(9) + ddpsi * np.outer(cof, cof) + dpsi * hessian_j
+        values, vectors = np.linalg.eigh(dp_df)
+        expected = volume * b.T @ ((vectors * np.maximum(values, 0)) @ vectors.T) @ b
+        got = el.evaluate(rest @ gradient.T, project_psd=True).stiffness.toarray()
+        np.testing.assert_allclose(got, expected, atol=1e-12 * np.abs(expected).max())
+
+
 def test_projection_changes_nothing_where_elements_are_convex() -> None:
     # Uniform stretch with J ~ alpha: psi' ~ 0, every dP/dF is positive definite.
     mesh = box_mesh((2, 2, 2), jitter=0.2)
