@@ -79,9 +79,10 @@ def test_newton_converges_quadratically_under_prescribed_top() -> None:
     assert result.status is StepStatus.OK, result
     history = np.array(result.newton_residuals)
     assert history[-1] <= 1e-11
-    # Near the solution each residual is at most about the square of the previous one
-    # (quadratic convergence), once the residual has dropped below 1e-2.
-    tail = [(a, b) for a, b in zip(history[:-1], history[1:], strict=False) if a < 1e-2 and b > 1e-15]
+    # Near the solution (where robust mode uses the exact tangent, below a relative residual
+    # of 1e-2, after any fallback to projection) each residual is at most about the square
+    # of the previous one.
+    tail = [(a, b) for a, b in zip(history[:-1], history[1:], strict=False) if a < 2e-3 and b > 1e-15]
     assert tail, history
     for previous, current in tail:
         assert current <= 50.0 * previous**2, history

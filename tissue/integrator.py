@@ -60,6 +60,8 @@ _BLOW_UP_EXTENTS = 2.0
 # Armijo sufficient-decrease constant and the smallest line-search step tried.
 _ARMIJO_C = 1e-4
 _MIN_STEP_FRACTION = 2.0**-12
+# Relative Newton residual below which the exact (unprojected) tangent is tried first.
+_PROJECTION_SWITCH = 1e-2
 
 
 class IntegrationMode(str, Enum):
@@ -373,48 +375,61 @@ class ImplicitIntegrator:
         iterations = 0
         energy = math.inf
         history: list[float] = []
-        for iterations in range(1, cfg.newton_max_iterations + 1):  # noqa: B007
-            state = self.elasticity.evaluate(
-                y.reshape(-1, 3), tangent=True, project_psd=bool(cfg.project_psd)
-            )
-            stiffness = self._stiffness_with_terms(state, y.reshape(-1, 3), terms)
-            internal = state.forces.reshape(-1) + self._term_forces(y.reshape(-1, 3), terms)
-            gradient = -internal
-            if external is not None:
-                gradient = gradient - external
+        def linearise(y_flat, project):
+            """Gradient of the incremental potential and its Hessian's CSR data at y."""
+            y3 = y_flat.reshape(-1, 3)
+            state = self.elasticity.evaluate(y3, tangent=True, project_psd=project)
+            stiffness = self._stiffness_with_terms(state, y3, terms)
+            internal = state.forces.reshape(-1) + self._term_forces(y3, terms)
+            gradient = -internal if external is None else -internal - external
             h_data = stiffness.data.copy()
+            inertial = np.zeros_like(y_flat)
             if not quasi:
-                inertial = m * (y - inertia_target) / (h * h)
-                gradient = gradient + inertial
-                dx = y - x0_flat
-                gradient = gradient + cfg.rayleigh_mass * m * dx / h
+                inertial = m * (y_flat - inertia_target) / (h * h)
+                dx = y_flat - x0_flat
+                gradient = gradient + inertial + cfg.rayleigh_mass * m * dx / h
                 h_data[self._diagonal(stiffness)] += m / (h * h) + cfg.rayleigh_mass * m / h
                 if damping is not None:
                     gradient = gradient + cfg.rayleigh_stiffness * (damping @ dx) / h
                     h_data += (cfg.rayleigh_stiffness / h) * damping.data
-            else:
-                inertial = np.zeros_like(y)
-            mismatch = float(np.max(np.abs(target_flat - y[dofs]))) if dofs.size else 0.0
             scale = max(
                 float(np.linalg.norm(internal)),
                 float(np.linalg.norm(inertial)),
                 float(np.linalg.norm(external)) if external is not None else 0.0,
-                1e-300,
             )
-            relative = float(np.linalg.norm(gradient[free])) / scale
+            return gradient, h_data, stiffness, scale
+
+        def direction_for(y_flat, gradient, h_data, stiffness, tolerance):
+            matrix = sp.csr_matrix((h_data, stiffness.indices, stiffness.indptr), shape=stiffness.shape)
+            values = np.zeros_like(y_flat)
+            values[dofs] = target_flat - y_flat[dofs]
+            system = ConstrainedSystem(matrix, -gradient, constrained, values)
+            return self.solver.solve(system, tolerance=tolerance)
+
+        for iterations in range(1, cfg.newton_max_iterations + 1):  # noqa: B007
+            # Projected tangents make every direction descend but cost quadratic convergence
+            # (the clamped Hessian is not the true one), so far from the solution we project
+            # and near it we use the exact tangent, falling back to projection whenever the
+            # exact one does not give a descent direction.
+            project = bool(cfg.project_psd) and relative > _PROJECTION_SWITCH
+            gradient, h_data, stiffness, scale = linearise(y, project)
+            mismatch = float(np.max(np.abs(target_flat - y[dofs]))) if dofs.size else 0.0
+            relative = float(np.linalg.norm(gradient[free])) / scale if scale > 0 else 0.0
             history.append(relative)
             if not np.isfinite(relative):
                 return self._failed(x0, v0, StepStatus.DIVERGED)
-            if mismatch == 0.0 and (relative <= cfg.newton_tolerance or scale <= 1e-300):
+            if mismatch == 0.0 and relative <= cfg.newton_tolerance:
                 break
-            matrix = sp.csr_matrix((h_data, stiffness.indices, stiffness.indptr), shape=stiffness.shape)
-            values = np.zeros_like(y)
-            values[dofs] = target_flat - y[dofs]
-            system = ConstrainedSystem(matrix, -gradient, constrained, values)
             # Inexact Newton: solve only as accurately as the current residual deserves.
             tolerance = min(1e-2, max(relative, 1e-10))
             try:
-                direction, report = self.solver.solve(system, tolerance=tolerance)
+                direction, report = direction_for(y, gradient, h_data, stiffness, tolerance)
+                descends = mismatch > 0.0 or float(gradient @ direction) < 0.0
+                if cfg.project_psd and not project and (report.indefinite or not descends):
+                    gradient, h_data, stiffness, scale = linearise(y, True)
+                    total_linear += report.iterations
+                    factorizations += int(report.factorized)
+                    direction, report = direction_for(y, gradient, h_data, stiffness, tolerance)
             except Exception:  # noqa: BLE001 - report, don't crash
                 return self._failed(x0, v0, StepStatus.SOLVER_FAILED)
             total_linear += report.iterations

@@ -193,7 +193,7 @@ class TissueSimulator:
         self._prescribed_dofs = np.zeros(0, dtype=np.int64)
         self._prescribed_targets = np.zeros(0)
         self._fixed_dofs = node_dofs(mesh.fixed_nodes)
-        self._checked_dofs = np.zeros(0, dtype=np.int64)
+        self._checked_dofs: NDArray[np.int64] | None = None
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -318,7 +318,9 @@ class TissueSimulator:
         dt = self.config.tissue_dt if dt is None else float(dt)
         start = time.perf_counter()
         dofs, targets = self._constraints()
-        if self.config.quasi_static and not np.array_equal(dofs, self._checked_dofs):
+        if self.config.quasi_static and (
+            self._checked_dofs is None or not np.array_equal(dofs, self._checked_dofs)
+        ):
             check_rigid_motion_removed(self.mesh, dofs)
             self._checked_dofs = dofs
         outcome = self.integrator.step(self._positions, self._velocities, dt, dofs, targets, terms)
