@@ -99,11 +99,13 @@ def benchmark_level(level: int, repeats: int) -> dict[str, float | int | str]:
         samples.append(time.perf_counter() - start)
     direct_factor_ms = _median_ms(samples)
     exact = factorization.solve(system.rhs)
-    capped, report = LinearSolver(LinearSolverConfig(kind="cg", cg_max_iterations=25, cg_tolerance=1e-12)).solve(
-        system
-    )
+    capped, report = LinearSolver(
+        LinearSolverConfig(kind="cg", cg_max_iterations=25, cg_tolerance=1e-12)
+    ).solve(system)
     error = capped - exact
-    cg25_energy_error = float(np.sqrt(error @ (system.matrix @ error) / (exact @ (system.matrix @ exact))))
+    cg25_energy_error = float(
+        np.sqrt(error @ (system.matrix @ error) / (exact @ (system.matrix @ exact)))
+    )
 
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     return {
@@ -140,7 +142,11 @@ def _paper_system(sim: TissueSimulator, nodes: np.ndarray, depth_m: float) -> Co
     matrix = (matrix + sp.diags((1.0 + h * cfg.rayleigh_mass) * m)).tocsr()
     matrix.sort_indices()
     kv = stiffness @ v.reshape(-1)
-    rhs = h * (state.forces.reshape(-1) - cfg.rayleigh_mass * m * v.reshape(-1) - cfg.rayleigh_stiffness * kv)
+    rhs = h * (
+        state.forces.reshape(-1)
+        - cfg.rayleigh_mass * m * v.reshape(-1)
+        - cfg.rayleigh_stiffness * kv
+    )
     rhs -= h * h * kv
     constrained_nodes = np.concatenate([sim.mesh.fixed_nodes, nodes])
     targets = np.concatenate(
@@ -164,7 +170,10 @@ def run_tissue_benchmark(
         f"{'tets':>8} {'nodes':>7} {'assembly':>9} {'paper step':>11} {'factor':>8} "
         f"{'newton step':>12} {'newton it':>9} {'CG25 err':>9} {'peak MB':>8}"
     )
-    print(f"probegym bench tissue — medians of {repeats} repeats, times in ms ({platform.processor() or platform.machine()})")
+    print(
+        f"probegym bench tissue — medians of {repeats} repeats, times in ms "
+        f"({platform.processor() or platform.machine()})"
+    )
     print(header)
     for level in levels:
         record = benchmark_level(level, repeats)

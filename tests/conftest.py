@@ -22,5 +22,7 @@ def _private_mesh_cache(tmp_path_factory: pytest.TempPathFactory) -> None:
 def paper_scene_dir() -> Path:
     """The published scene of Tagliabue et al. (read-only test data beside the project)."""
     if not SHARED_SCENE.is_dir():
-        pytest.skip(f"the published scene is not present at {SHARED_SCENE} (test data, not shipped)")
+        pytest.skip(
+            f"the published scene is not present at {SHARED_SCENE} (test data, not shipped)"
+        )
     return SHARED_SCENE

@@ -35,7 +35,9 @@ def test_unknown_material_law_lists_valid_ones() -> None:
 
 
 def _unit_tet_mesh(nodes: np.ndarray, tets: np.ndarray) -> TetMesh:
-    return TetMesh(nodes=nodes, tets=tets, region=np.zeros(len(tets), np.int64), fixed_nodes=np.array([0]))
+    return TetMesh(
+        nodes=nodes, tets=tets, region=np.zeros(len(tets), np.int64), fixed_nodes=np.array([0])
+    )
 
 
 def test_inverted_tet_is_rejected_with_its_index() -> None:
@@ -45,7 +47,9 @@ def test_inverted_tet_is_rejected_with_its_index() -> None:
 
 
 def test_degenerate_tet_is_rejected() -> None:
-    nodes = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0], [0.01, 0.01, 0], [0, 0, 0.01]], dtype=float)
+    nodes = np.array(
+        [[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0], [0.01, 0.01, 0], [0, 0, 0.01]], dtype=float
+    )
     with pytest.raises(MeshError, match="degenerate"):
         _unit_tet_mesh(nodes, np.array([[0, 1, 2, 4], [0, 1, 2, 3]]))
 
@@ -53,7 +57,12 @@ def test_degenerate_tet_is_rejected() -> None:
 def test_mesh_in_millimetres_is_caught() -> None:
     mesh = block_mesh((0.14, 0.12, 0.08), (2, 2, 2))
     with pytest.raises(MeshError, match="millimetres"):
-        TetMesh(nodes=mesh.nodes * 1000.0, tets=mesh.tets, region=mesh.region, fixed_nodes=mesh.fixed_nodes)
+        TetMesh(
+            nodes=mesh.nodes * 1000.0,
+            tets=mesh.tets,
+            region=mesh.region,
+            fixed_nodes=mesh.fixed_nodes,
+        )
 
 
 def test_quasi_static_without_enough_fixed_nodes_is_rejected() -> None:

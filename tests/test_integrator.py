@@ -36,9 +36,16 @@ def _platen_setup(mesh, height, axial_stretch):
     y0 = nodes_on_plane(mesh.nodes, "y=min")
     z0 = nodes_on_plane(mesh.nodes, "z=min")
     top = nodes_on_plane(mesh.nodes, "z=max")
-    dofs = np.concatenate([node_dofs(x0, (0,)), node_dofs(y0, (1,)), node_dofs(z0, (2,)), node_dofs(top, (2,))])
+    dofs = np.concatenate(
+        [node_dofs(x0, (0,)), node_dofs(y0, (1,)), node_dofs(z0, (2,)), node_dofs(top, (2,))]
+    )
     targets = np.concatenate(
-        [np.zeros(x0.size), np.zeros(y0.size), np.zeros(z0.size), np.full(top.size, axial_stretch * height)]
+        [
+            np.zeros(x0.size),
+            np.zeros(y0.size),
+            np.zeros(z0.size),
+            np.full(top.size, axial_stretch * height),
+        ]
     )
     return dofs, targets, top
 
@@ -71,7 +78,9 @@ def test_uniaxial_compression_matches_closed_form_at_30_percent(mode: str) -> No
 def test_newton_converges_quadratically_under_prescribed_top() -> None:
     size = 0.02
     mesh = block_mesh((size, size, size / 2), (4, 4, 2), fix="z=min")
-    config = SimulationConfig(mode="robust", quasi_static=True, linear_solver="direct", newton_tolerance=1e-11)
+    config = SimulationConfig(
+        mode="robust", quasi_static=True, linear_solver="direct", newton_tolerance=1e-11
+    )
     sim = TissueSimulator(mesh, TissueMaterials(tissue=NeoHookean(E, NU)), config)
     top = nodes_on_plane(mesh.nodes, "z=max")
     sim.prescribe(top, mesh.nodes[top] + [0.001, 0.0, -0.004])  # 40 % squeeze and shear
@@ -82,7 +91,9 @@ def test_newton_converges_quadratically_under_prescribed_top() -> None:
     # Near the solution (where robust mode uses the exact tangent, below a relative residual
     # of 1e-2, after any fallback to projection) each residual is at most about the square
     # of the previous one.
-    tail = [(a, b) for a, b in zip(history[:-1], history[1:], strict=False) if a < 2e-3 and b > 1e-15]
+    tail = [
+        (a, b) for a, b in zip(history[:-1], history[1:], strict=False) if a < 2e-3 and b > 1e-15
+    ]
     assert tail, history
     for previous, current in tail:
         assert current <= 50.0 * previous**2, history
@@ -150,7 +161,9 @@ def test_inverting_step_in_classic_law_is_reported_not_raised() -> None:
 
 def test_robust_mode_survives_the_same_violent_step() -> None:
     mesh = block_mesh((0.01, 0.01, 0.01), (2, 2, 2), fix="z=min")
-    sim = TissueSimulator(mesh, TissueMaterials(tissue=NeoHookean(E, NU)), SimulationConfig(mode="robust"))
+    sim = TissueSimulator(
+        mesh, TissueMaterials(tissue=NeoHookean(E, NU)), SimulationConfig(mode="robust")
+    )
     top = nodes_on_plane(mesh.nodes, "z=max")
     sim.prescribe(top, mesh.nodes[top] + [0.0, 0.0, -0.006])  # 60 % in one step
     result = sim.step()

@@ -13,7 +13,11 @@ from tissue.solvers import ConstrainedSystem, LinearSolver, LinearSolverConfig
 def _laplacian_3d(n: int, shift: float) -> sp.csr_matrix:
     one = sp.diags([-1.0, 2.0, -1.0], [-1, 0, 1], shape=(n, n))
     eye = sp.eye(n)
-    matrix = sp.kron(sp.kron(one, eye), eye) + sp.kron(sp.kron(eye, one), eye) + sp.kron(sp.kron(eye, eye), one)
+    matrix = (
+        sp.kron(sp.kron(one, eye), eye)
+        + sp.kron(sp.kron(eye, one), eye)
+        + sp.kron(sp.kron(eye, eye), one)
+    )
     matrix = (matrix + shift * sp.eye(n**3)).tocsr()
     matrix.sort_indices()
     return matrix
@@ -23,7 +27,10 @@ def _reference(matrix: sp.csr_matrix, rhs, constrained, values):
     free = ~constrained
     dense = matrix.toarray()
     x = np.where(constrained, values, 0.0)
-    x[free] = np.linalg.solve(dense[np.ix_(free, free)], rhs[free] - dense[np.ix_(free, constrained)] @ values[constrained])
+    x[free] = np.linalg.solve(
+        dense[np.ix_(free, free)],
+        rhs[free] - dense[np.ix_(free, constrained)] @ values[constrained],
+    )
     return x
 
 
@@ -37,7 +44,9 @@ def test_constrained_solution_matches_dense_reference(kind: str) -> None:
     expected = _reference(matrix, rhs, constrained, values)
     solver = LinearSolver(LinearSolverConfig(kind=kind, cg_max_iterations=2000, cg_tolerance=1e-12))
     for _ in range(2):  # the second solve reuses analysis / factorisation
-        x, report = solver.solve(ConstrainedSystem(matrix.copy(), rhs, constrained, values), tolerance=1e-12)
+        x, report = solver.solve(
+            ConstrainedSystem(matrix.copy(), rhs, constrained, values), tolerance=1e-12
+        )
         np.testing.assert_allclose(x, expected, rtol=1e-8, atol=1e-8)
         assert report.converged
 
@@ -57,7 +66,9 @@ def test_cg_cap_is_respected_and_reported() -> None:
     matrix = _laplacian_3d(10, 1e-4)
     rhs = np.ones(matrix.shape[0])
     solver = LinearSolver(LinearSolverConfig(kind="cg", cg_max_iterations=25, cg_tolerance=1e-12))
-    _, report = solver.solve(ConstrainedSystem(matrix, rhs, np.zeros_like(rhs, dtype=bool), np.zeros_like(rhs)))
+    _, report = solver.solve(
+        ConstrainedSystem(matrix, rhs, np.zeros_like(rhs, dtype=bool), np.zeros_like(rhs))
+    )
     assert report.iterations == 25
     assert not report.converged
     assert report.relative_residual > 1e-12
@@ -65,7 +76,12 @@ def test_cg_cap_is_respected_and_reported() -> None:
 
 @pytest.mark.parametrize(
     "settings",
-    [{"kind": "cholesky"}, {"cg_max_iterations": 0}, {"cg_tolerance": 2.0}, {"direct_backend": "mumps"}],
+    [
+        {"kind": "cholesky"},
+        {"cg_max_iterations": 0},
+        {"cg_tolerance": 2.0},
+        {"direct_backend": "mumps"},
+    ],
 )
 def test_bad_solver_settings_are_named(settings: dict) -> None:
     with pytest.raises(ConfigError) as error:

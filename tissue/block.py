@@ -56,10 +56,10 @@ def block_mesh(
     def index(i, j, k):
         return (i * ny + j) * nz + k
 
-    i, j, k = np.meshgrid(
+    cells = np.meshgrid(
         np.arange(divisions[0]), np.arange(divisions[1]), np.arange(divisions[2]), indexing="ij"
     )
-    i, j, k = i.reshape(-1), j.reshape(-1), k.reshape(-1)
+    i, j, k = (c.reshape(-1) for c in cells)
     corners = np.stack([index(i + a, j + b, k + c) for a, b, c in _CUBE_CORNERS], axis=1)
     tets = corners[:, _KUHN_TETS].reshape(-1, 4)
     fixed = np.zeros(0, dtype=np.int64) if fix is None else nodes_on_plane(grid, fix)

@@ -76,7 +76,9 @@ class IntegrationMode(str, Enum):
             return cls(value)
         except ValueError:
             valid = ", ".join(repr(m.value) for m in cls)
-            raise ConfigError(f"unknown integration mode {value!r}; choose one of {valid}") from None
+            raise ConfigError(
+                f"unknown integration mode {value!r}; choose one of {valid}"
+            ) from None
 
 
 @dataclass(frozen=True)
@@ -98,7 +100,7 @@ class IntegratorConfig:
         max_subdivisions: how many times a failed robust step may be halved (0 disables).
     """
 
-    mode: IntegrationMode = IntegrationMode.PAPER
+    mode: IntegrationMode | str = IntegrationMode.PAPER
     quasi_static: bool = False
     rayleigh_mass: float = 0.1
     rayleigh_stiffness: float = 0.1
@@ -118,7 +120,9 @@ class IntegratorConfig:
         if not 0 < self.newton_tolerance < 1:
             raise ConfigError(f"newton_tolerance must lie in (0, 1); got {self.newton_tolerance}")
         if self.newton_max_iterations < 1:
-            raise ConfigError(f"newton_max_iterations must be >= 1; got {self.newton_max_iterations}")
+            raise ConfigError(
+                f"newton_max_iterations must be >= 1; got {self.newton_max_iterations}"
+            )
         if self.max_subdivisions < 0:
             raise ConfigError(f"max_subdivisions must be >= 0; got {self.max_subdivisions}")
         if self.linear_solver is None:
@@ -260,7 +264,13 @@ class ImplicitIntegrator:
             outcome = self._paper_step(positions, velocities, dt, constrained_dofs, targets, terms)
         else:
             outcome = self._robust_step(
-                positions, velocities, dt, constrained_dofs, targets, terms, self.config.max_subdivisions
+                positions,
+                velocities,
+                dt,
+                constrained_dofs,
+                targets,
+                terms,
+                self.config.max_subdivisions,
             )
         outcome.seconds = time.perf_counter() - start
         return outcome
@@ -282,15 +292,22 @@ class ImplicitIntegrator:
         x_flat = x.reshape(-1)
         if cfg.quasi_static:
             # K dx = f with dx prescribed at constrained dofs.
-            matrix = sp.csr_matrix((k_data.copy(), stiffness.indices, stiffness.indptr), shape=stiffness.shape)
+            matrix = sp.csr_matrix(
+                (k_data.copy(), stiffness.indices, stiffness.indptr), shape=stiffness.shape
+            )
             rhs = force
             values[dofs] = targets - x_flat[dofs]
         else:
             m = self.mass_dof
             a_data = (h * cfg.rayleigh_stiffness + h * h) * k_data
             a_data[self._diagonal(stiffness)] += (1.0 + h * cfg.rayleigh_mass) * m
-            matrix = sp.csr_matrix((a_data, stiffness.indices, stiffness.indptr), shape=stiffness.shape)
-            rhs = h * (force - cfg.rayleigh_mass * m * v_flat - cfg.rayleigh_stiffness * kv) - h * h * kv
+            matrix = sp.csr_matrix(
+                (a_data, stiffness.indices, stiffness.indptr), shape=stiffness.shape
+            )
+            rhs = (
+                h * (force - cfg.rayleigh_mass * m * v_flat - cfg.rayleigh_stiffness * kv)
+                - h * h * kv
+            )
             values[dofs] = (targets - x_flat[dofs]) / h - v_flat[dofs]
         original = matrix.data.copy()
         system = ConstrainedSystem(matrix, rhs, constrained, values)
@@ -301,9 +318,7 @@ class ImplicitIntegrator:
         if not np.all(np.isfinite(solution)):
             return self._failed(x, v, StepStatus.SOLVER_FAILED)
         # Reactions: what the constraints add so that the constrained rows balance.
-        rows_matrix_times = _row_products(
-            matrix.indptr, matrix.indices, original, dofs, solution
-        )
+        rows_matrix_times = _row_products(matrix.indptr, matrix.indices, original, dofs, solution)
         reaction = np.zeros(x.size)
         if cfg.quasi_static:
             new_x = x + solution.reshape(-1, 3)
@@ -375,6 +390,7 @@ class ImplicitIntegrator:
         iterations = 0
         energy = math.inf
         history: list[float] = []
+
         def linearise(y_flat, project):
             """Gradient of the incremental potential and its Hessian's CSR data at y."""
             y3 = y_flat.reshape(-1, 3)
@@ -400,7 +416,9 @@ class ImplicitIntegrator:
             return gradient, h_data, stiffness, scale
 
         def direction_for(y_flat, gradient, h_data, stiffness, tolerance):
-            matrix = sp.csr_matrix((h_data, stiffness.indices, stiffness.indptr), shape=stiffness.shape)
+            matrix = sp.csr_matrix(
+                (h_data, stiffness.indices, stiffness.indptr), shape=stiffness.shape
+            )
             values = np.zeros_like(y_flat)
             values[dofs] = target_flat - y_flat[dofs]
             system = ConstrainedSystem(matrix, -gradient, constrained, values)
@@ -451,7 +469,14 @@ class ImplicitIntegrator:
         reaction[dofs] = gradient[dofs]
         report = SolveReport(total_linear, worst_linear, True, factorizations > 0)
         outcome = self._finish(
-            x0, v0, new_x, new_v, reaction, report, newton_iterations=iterations, newton_residual=relative
+            x0,
+            v0,
+            new_x,
+            new_v,
+            reaction,
+            report,
+            newton_iterations=iterations,
+            newton_residual=relative,
         )
         outcome.factorizations = factorizations
         outcome.newton_residuals = history
@@ -548,7 +573,9 @@ class ImplicitIntegrator:
         for term in terms:
             evaluation = term.evaluate(positions)
             if evaluation.stiffness_values.size:
-                where = _pattern_positions(stiffness, evaluation.stiffness_rows, evaluation.stiffness_cols)
+                where = _pattern_positions(
+                    stiffness, evaluation.stiffness_rows, evaluation.stiffness_cols
+                )
                 np.add.at(data, where, evaluation.stiffness_values)
         return sp.csr_matrix((data, stiffness.indices, stiffness.indptr), shape=stiffness.shape)
 
@@ -561,7 +588,11 @@ class ImplicitIntegrator:
 
 
 def node_dofs(nodes: NDArray[np.int64], axes: tuple[int, ...] = (0, 1, 2)) -> NDArray[np.int64]:
-    """Dof indices (3·node + axis), node-major, of ``nodes`` along ``axes``: (len(nodes)·len(axes),)."""
+    """Dof indices (3·node + axis), node-major, of ``nodes`` along ``axes``.
+
+    Returns:
+        shape (len(nodes)·len(axes),).
+    """
     nodes = np.asarray(nodes, dtype=np.int64)
     return (3 * nodes[:, None] + np.asarray(axes, dtype=np.int64)).reshape(-1)
 

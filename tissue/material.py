@@ -83,9 +83,7 @@ class NeoHookean:
     @property
     def lambda_pa(self) -> float:
         """First Lamé parameter lambda [Pa]."""
-        return (
-            self.young_pa * self.poisson / ((1.0 + self.poisson) * (1.0 - 2.0 * self.poisson))
-        )
+        return self.young_pa * self.poisson / ((1.0 + self.poisson) * (1.0 - 2.0 * self.poisson))
 
     def scaled(self, stiffness_ratio: float) -> NeoHookean:
         """The same material with E multiplied by ``stiffness_ratio``."""
@@ -110,7 +108,7 @@ class TissueMaterials:
     tissue: NeoHookean = field(default_factory=NeoHookean)
     lesion_stiffness_ratio: float = 4.0
     lesion_overrides: tuple[tuple[int, NeoHookean], ...] = ()
-    law: MaterialLaw = MaterialLaw.STABLE
+    law: MaterialLaw | str = MaterialLaw.STABLE
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "law", MaterialLaw.parse(self.law))

@@ -145,7 +145,9 @@ class TetMesh:
         )
         return _replace(self, collision_surface=surface)
 
-    def with_landmarks(self, names: tuple[str, ...], rest_positions: NDArray[np.float64]) -> TetMesh:
+    def with_landmarks(
+        self, names: tuple[str, ...], rest_positions: NDArray[np.float64]
+    ) -> TetMesh:
         """A copy with tracked points embedded barycentrically in this volume."""
         rest_positions = np.asarray(rest_positions, dtype=np.float64).reshape(-1, 3)
         if len(names) != rest_positions.shape[0]:
@@ -166,7 +168,7 @@ class TetMesh:
 
 
 def _replace(mesh: TetMesh, **changes: object) -> TetMesh:
-    values = {
+    values: dict[str, object] = {
         "nodes": mesh.nodes,
         "tets": mesh.tets,
         "region": mesh.region,
@@ -181,7 +183,9 @@ def _replace(mesh: TetMesh, **changes: object) -> TetMesh:
     return TetMesh(**values)  # type: ignore[arg-type]
 
 
-def signed_tet_volumes(positions: NDArray[np.float64], tets: NDArray[np.int64]) -> NDArray[np.float64]:
+def signed_tet_volumes(
+    positions: NDArray[np.float64], tets: NDArray[np.int64]
+) -> NDArray[np.float64]:
     """Signed volumes [m^3], shape (tet_count,), of tets over positions [m], (node_count, 3)."""
     x0 = positions[tets[:, 0]]
     e1 = positions[tets[:, 1]] - x0
@@ -273,7 +277,9 @@ def check_rigid_motion_removed(mesh: TetMesh, constrained_dofs: NDArray[np.int64
         modes[:, 3 + a] = rotation[np.arange(constrained_dofs.size), axes]
     extent = float(np.max(np.ptp(mesh.nodes, axis=0)))
     if constrained_dofs.size >= 6:
-        singular = np.linalg.svd(modes * np.array([1, 1, 1, 1 / extent, 1 / extent, 1 / extent]), compute_uv=False)
+        singular = np.linalg.svd(
+            modes * np.array([1, 1, 1, 1 / extent, 1 / extent, 1 / extent]), compute_uv=False
+        )
         if singular[-1] > 1e-9:
             return
     raise MeshError(
@@ -305,6 +311,8 @@ def top_surface_nodes(
     inside = np.all(np.abs(xy) <= np.asarray(half_size_xy), axis=1)
     candidates = boundary[inside]
     if candidates.size == 0:
-        raise MeshError(f"no surface node lies under a face at {center_xy} of half size {half_size_xy}")
+        raise MeshError(
+            f"no surface node lies under a face at {center_xy} of half size {half_size_xy}"
+        )
     top = mesh.nodes[candidates, 2].max()
     return np.sort(candidates[mesh.nodes[candidates, 2] >= top - depth_m])

@@ -365,9 +365,10 @@ class BoxProbe(_RoundedSlab):
         values = np.asarray(size_m, dtype=np.float64).ravel()
         if values.shape != (3,):
             raise ConfigError(f"a box needs 3 sizes (LX, LY, LZ) in metres; got {size_m!r}")
-        size = tuple(
+        sx, sy, sz = (
             _positive_size(v, f"box size {axis}") for v, axis in zip(values, "xyz", strict=True)
         )
+        size = (sx, sy, sz)
         super().__init__(size, 0.0, 0.0, name="box:{:g},{:g},{:g}".format(*size))
 
 

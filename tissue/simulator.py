@@ -62,11 +62,11 @@ class SimulationConfig:
     """
 
     tissue_dt: float = 0.02
-    mode: IntegrationMode = IntegrationMode.PAPER
+    mode: IntegrationMode | str = IntegrationMode.PAPER
     quasi_static: bool = False
     linear_solver: str | None = None
     cg_max_iterations: int = 25
-    anti_locking: AntiLocking = AntiLocking.NONE
+    anti_locking: AntiLocking | str = AntiLocking.NONE
     project_psd: bool | None = None
     rayleigh_mass: float = 0.1
     rayleigh_stiffness: float = 0.1
@@ -188,8 +188,12 @@ class TissueSimulator:
         self.elasticity = Elasticity(mesh, self.materials, self.config.anti_locking)
         external = None
         if self.config.gravity_m_s2 is not None:
-            external = self.elasticity.lumped_mass[:, None] * np.asarray(self.config.gravity_m_s2)[None, :]
-        self.integrator = ImplicitIntegrator(self.elasticity, self.config.integrator_config(), external)
+            external = (
+                self.elasticity.lumped_mass[:, None] * np.asarray(self.config.gravity_m_s2)[None, :]
+            )
+        self.integrator = ImplicitIntegrator(
+            self.elasticity, self.config.integrator_config(), external
+        )
         self._prescribed_dofs = np.zeros(0, dtype=np.int64)
         self._prescribed_targets = np.zeros(0)
         self._fixed_dofs = node_dofs(mesh.fixed_nodes)
@@ -234,16 +238,21 @@ class TissueSimulator:
         positions = np.array(positions, dtype=np.float64)
         if positions.shape != self._positions.shape or not np.all(np.isfinite(positions)):
             raise TissueInputError(
-                f"positions must be finite with shape {self._positions.shape}; got {positions.shape}"
+                f"positions must be finite with shape {self._positions.shape}; "
+                f"got {positions.shape}"
             )
         self._positions = positions
         self._velocities = (
-            np.zeros_like(positions) if velocities is None else np.array(velocities, dtype=np.float64)
+            np.zeros_like(positions)
+            if velocities is None
+            else np.array(velocities, dtype=np.float64)
         )
 
     # ------------------------------------------------------------------ boundary conditions
 
-    def prescribe(self, nodes: ArrayLike, targets: ArrayLike, axes: Sequence[int] = (0, 1, 2)) -> None:
+    def prescribe(
+        self, nodes: ArrayLike, targets: ArrayLike, axes: Sequence[int] = (0, 1, 2)
+    ) -> None:
         """Prescribe where ``nodes`` are at the end of the next step(s), replacing any earlier set.
 
         Args:
@@ -259,7 +268,8 @@ class TissueSimulator:
             targets = np.broadcast_to(targets, (nodes.size, 3))
         if targets.shape != (nodes.size, 3):
             raise TissueInputError(
-                f"targets must have shape ({nodes.size}, 3) for {nodes.size} nodes; got {targets.shape}"
+                f"targets must have shape ({nodes.size}, 3) for {nodes.size} nodes; "
+                f"got {targets.shape}"
             )
         if nodes.size and (nodes.min() < 0 or nodes.max() >= self.mesh.node_count):
             raise TissueInputError(
@@ -269,9 +279,11 @@ class TissueSimulator:
         if np.unique(nodes).size != nodes.size:
             raise TissueInputError("prescribed nodes must be unique; remove the repeated indices")
         axes_array = np.asarray(axes, dtype=np.int64)
-        if axes_array.size == 0 or np.any((axes_array < 0) | (axes_array > 2)) or np.unique(
-            axes_array
-        ).size != axes_array.size:
+        if (
+            axes_array.size == 0
+            or np.any((axes_array < 0) | (axes_array > 2))
+            or np.unique(axes_array).size != axes_array.size
+        ):
             raise TissueInputError(f"axes must be distinct values among 0, 1, 2; got {list(axes)}")
         self.prescribe_dofs(node_dofs(nodes, tuple(axes_array)), targets[:, axes_array].reshape(-1))
 
@@ -285,7 +297,9 @@ class TissueSimulator:
         dofs = np.asarray(dofs, dtype=np.int64).reshape(-1)
         targets = np.asarray(targets, dtype=np.float64).reshape(-1)
         if targets.shape != dofs.shape:
-            raise TissueInputError(f"got {targets.size} targets for {dofs.size} dofs; give one each")
+            raise TissueInputError(
+                f"got {targets.size} targets for {dofs.size} dofs; give one each"
+            )
         if dofs.size and (dofs.min() < 0 or dofs.max() >= self.mesh.dof_count):
             raise TissueInputError(
                 f"dofs must lie in [0, {self.mesh.dof_count - 1}]; got [{dofs.min()}, {dofs.max()}]"

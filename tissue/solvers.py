@@ -65,7 +65,9 @@ class DirectBackend(str, Enum):
             return cls(value)
         except ValueError:
             valid = ", ".join(repr(m.value) for m in cls)
-            raise ConfigError(f"unknown direct solver backend {value!r}; choose one of {valid}") from None
+            raise ConfigError(
+                f"unknown direct solver backend {value!r}; choose one of {valid}"
+            ) from None
 
 
 @dataclass(frozen=True)
@@ -116,7 +118,9 @@ def _dot(a, b):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def _jacobi_pcg(indptr, indices, data, b, x, inv_diag, max_iterations, tolerance):  # pragma: no cover
+def _jacobi_pcg(
+    indptr, indices, data, b, x, inv_diag, max_iterations, tolerance
+):  # pragma: no cover
     """Jacobi-preconditioned CG on a system whose constrained rows are identity rows.
 
     Returns (iterations, relative residual). x holds the initial guess and the result.
@@ -275,7 +279,12 @@ class DirectFactorizer:
                     matrix.data[self._upper_positions].copy(),
                     matrix.indices[self._upper_positions].copy(),
                     np.concatenate(
-                        [[0], np.cumsum(np.bincount(rows[self._upper_positions], minlength=matrix.shape[0]))]
+                        [
+                            [0],
+                            np.cumsum(
+                                np.bincount(rows[self._upper_positions], minlength=matrix.shape[0])
+                            ),
+                        ]
                     ),
                 ),
                 shape=matrix.shape,
@@ -333,10 +342,10 @@ class LinearSolverConfig:
         reuse_max_iterations: preconditioned-CG iterations after which ``reuse`` refactorises.
     """
 
-    kind: LinearSolverKind = LinearSolverKind.CG
+    kind: LinearSolverKind | str = LinearSolverKind.CG
     cg_max_iterations: int = 25
     cg_tolerance: float = 1e-5
-    direct_backend: DirectBackend = DirectBackend.AUTO
+    direct_backend: DirectBackend | str = DirectBackend.AUTO
     reuse_max_iterations: int = 12
 
     def __post_init__(self) -> None:
@@ -378,7 +387,7 @@ class LinearSolver:
         kind: LinearSolverKind | None = None,
     ) -> tuple[NDArray[np.float64], SolveReport]:
         """Solve ``system``. Returns the full solution (constrained dofs at their values)."""
-        kind = kind or self.config.kind
+        kind = LinearSolverKind.parse(kind or self.config.kind)
         start = time.perf_counter()
         if kind is LinearSolverKind.CG:
             x, report = self._solve_cg(system, initial_guess, tolerance)
@@ -469,7 +478,9 @@ def _factor_pcg(
     return iterations, residual
 
 
-def _start(system: ConstrainedSystem, initial_guess: NDArray[np.float64] | None) -> NDArray[np.float64]:
+def _start(
+    system: ConstrainedSystem, initial_guess: NDArray[np.float64] | None
+) -> NDArray[np.float64]:
     if initial_guess is None:
         x = np.zeros_like(system.rhs)
     else:
