@@ -20,33 +20,41 @@ def run_demo(level: int = 4126, depth_m: float = 0.01, mode: str = "robust") -> 
     print(describe_mesh(mesh))
     sim = TissueSimulator(mesh, TissueMaterials(), SimulationConfig(mode=mode))
     center = mesh.nodes[:, :2].min(axis=0) / 2 + mesh.nodes[:, :2].max(axis=0) / 2
-    probe_nodes = top_surface_nodes(mesh, (center[0], center[1]), PROBE_FACE_HALF_SIZE_M)
-    rest = mesh.nodes[probe_nodes]
+    # Every surface node under the face's footprint can be reached; each one is held at the
+    # face's height (along z only: the face is frictionless) from the step the face reaches it.
+    candidates = top_surface_nodes(
+        mesh, (center[0], center[1]), PROBE_FACE_HALF_SIZE_M, depth_m=depth_m + 0.01
+    )
+    top = mesh.nodes[candidates, 2].max()
     dt = sim.config.tissue_dt
     step_count = int(np.ceil(depth_m / (PROBE_SPEED_M_S * dt)))
     print(
-        f"pressing {probe_nodes.size} surface nodes under a 53 x 13 mm probe face down "
-        f"{depth_m * 1e3:.1f} mm at {PROBE_SPEED_M_S * 1e3:.0f} mm/s ({step_count} steps of "
-        f"{dt * 1e3:.0f} ms, {mode} mode, prescribed displacement)"
+        f"pressing a flat 53 x 13 mm probe face {depth_m * 1e3:.1f} mm into the apex at "
+        f"{PROBE_SPEED_M_S * 1e3:.0f} mm/s ({step_count} steps of {dt * 1e3:.0f} ms, {mode} mode; "
+        "surface nodes under the face follow it once reached)"
     )
-    print(f"{'depth mm':>9} {'force N':>9} {'lesion 1 moved mm':>18} {'step ms':>8}  status")
+    print(
+        f"{'depth mm':>9} {'nodes':>6} {'force N':>9} {'lesion 1 moved mm':>18} {'step ms':>8}  status"
+    )
     rest_landmarks = sim.landmark_positions()
     times = []
     for step in range(1, step_count + 1):
         depth = min(depth_m, step * PROBE_SPEED_M_S * dt)
-        sim.prescribe(probe_nodes, rest + np.array([0.0, 0.0, -depth]))
+        face_z = top - depth
+        in_contact = candidates[sim.positions[candidates, 2] >= face_z]
+        sim.prescribe(in_contact, np.array([0.0, 0.0, face_z]), axes=(2,))
         result = sim.step()
         times.append(result.compute_ms)
         if step % max(1, step_count // 10) == 0 or step == step_count:
-            force = -result.reaction_force_n(probe_nodes)  # tissue pushing on the probe
+            force = -result.reaction_force_n(in_contact)  # the tissue pushing on the probe
             moved = (
                 np.linalg.norm(result.landmarks[0] - rest_landmarks[0]) * 1e3
                 if result.landmarks.size
                 else float("nan")
             )
             print(
-                f"{depth * 1e3:9.2f} {force[2]:9.3f} {moved:18.2f} {result.compute_ms:8.1f}  "
-                f"{result.status.value}"
+                f"{depth * 1e3:9.2f} {in_contact.size:6d} {force[2]:9.3f} {moved:18.2f} "
+                f"{result.compute_ms:8.1f}  {result.status.value}"
             )
     print(f"median step time: {np.median(times):.1f} ms (real time is {dt * 1e3:.0f} ms)")
     return 0
