@@ -33,9 +33,8 @@ def run_demo(level: int = 4126, depth_m: float = 0.01, mode: str = "robust") -> 
         f"{PROBE_SPEED_M_S * 1e3:.0f} mm/s ({step_count} steps of {dt * 1e3:.0f} ms, {mode} mode; "
         "surface nodes under the face follow it once reached)"
     )
-    print(
-        f"{'depth mm':>9} {'nodes':>6} {'force N':>9} {'lesion 1 moved mm':>18} {'step ms':>8}  status"
-    )
+    header = ("depth mm", "nodes", "force N", "lesion 1 moved mm", "step ms")
+    print("{:>9} {:>6} {:>9} {:>18} {:>8}  status".format(*header))
     rest_landmarks = sim.landmark_positions()
     times = []
     for step in range(1, step_count + 1):
