@@ -92,7 +92,9 @@ def test_newton_converges_quadratically_under_prescribed_top() -> None:
     # of 1e-2, after any fallback to projection) each residual is at most about the square
     # of the previous one.
     tail = [
-        (a, b) for a, b in zip(history[:-1], history[1:], strict=False) if a < 2e-3 and b > 1e-15
+        (a, b)
+        for a, b in zip(history[:-1], history[1:], strict=False)
+        if a < 2e-3 and b > 1e-13  # below: round-off
     ]
     assert tail, history
     for previous, current in tail:

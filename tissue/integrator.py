@@ -236,6 +236,7 @@ class ImplicitIntegrator:
         self._rest = rest
         self._blow_up_m = _BLOW_UP_EXTENTS * float(np.max(np.ptp(rest, axis=0)))
         self._diagonal_positions: NDArray[np.int64] | None = None
+        self._rest_stiffness_matrix: sp.csr_matrix | None = None
 
     # ------------------------------------------------------------------ public
 
@@ -357,111 +358,106 @@ class ImplicitIntegrator:
         m = self.mass_dof
         x0_flat = x0.reshape(-1)
         inertia_target = x0_flat + h * v0.reshape(-1)
-        target_flat = targets
         constrained = self._dof_mask(dofs)
         free = ~constrained
         external = self.external_force.reshape(-1) if self.external_force is not None else None
+        # Stiffness-proportional damping uses the rest stiffness: constant, PSD, and free of
+        # an extra assembly per step (the paper mode uses the current one, as SOFA does).
+        damping = self._rest_stiffness() if not quasi and cfg.rayleigh_stiffness > 0 else None
 
-        damping: sp.csr_matrix | None = None
-        if not quasi and cfg.rayleigh_stiffness > 0:
-            start_state = self.elasticity.evaluate(x0, tangent=True, project_psd=True)
-            damping = start_state.stiffness
-
-        def potential(y_flat: NDArray[np.float64]) -> tuple[float, ElasticState]:
-            y = y_flat.reshape(-1, 3)
-            state = self.elasticity.evaluate(y, tangent=False)
-            energy = state.energy_j + sum(t.evaluate(y).energy_j for t in terms)
+        def evaluate(y_flat):
+            """Incremental potential, its gradient and the force scale at y (no tangent)."""
+            y3 = y_flat.reshape(-1, 3)
+            state = self.elasticity.evaluate(y3, tangent=False)
+            energy = state.energy_j
+            internal = state.forces.reshape(-1)
+            for term in terms:
+                evaluation = term.evaluate(y3)
+                energy += evaluation.energy_j
+                internal = internal + evaluation.forces.reshape(-1)
+            gradient = -internal
+            scale = float(np.linalg.norm(internal))
             if external is not None:
                 energy -= float(external @ y_flat)
+                gradient = gradient - external
+                scale = max(scale, float(np.linalg.norm(external)))
             if not quasi:
                 d = y_flat - inertia_target
-                energy += 0.5 * float(d @ (m * d)) / (h * h)
+                inertial = m * d / (h * h)
+                energy += 0.5 * float(d @ inertial)
                 dx = y_flat - x0_flat
-                energy += 0.5 * cfg.rayleigh_mass * float(dx @ (m * dx)) / h
+                damping_force = cfg.rayleigh_mass * m * dx / h
                 if damping is not None:
-                    energy += 0.5 * cfg.rayleigh_stiffness * float(dx @ (damping @ dx)) / h
-            return energy, state
+                    damping_force = damping_force + cfg.rayleigh_stiffness * (damping @ dx) / h
+                energy += 0.5 * float(dx @ damping_force)
+                gradient = gradient + inertial + damping_force
+                scale = max(scale, float(np.linalg.norm(inertial)))
+            return energy, gradient, scale
 
-        y = x0_flat.copy()
-        total_linear = 0
-        worst_linear = 0.0
-        factorizations = 0
-        relative = math.inf
-        iterations = 0
-        energy = math.inf
-        history: list[float] = []
-
-        def linearise(y_flat, project):
-            """Gradient of the incremental potential and its Hessian's CSR data at y."""
+        def direction(y_flat, gradient, project, tolerance):
+            """Newton direction from the (optionally projected) Hessian at y."""
             y3 = y_flat.reshape(-1, 3)
             state = self.elasticity.evaluate(y3, tangent=True, project_psd=project)
             stiffness = self._stiffness_with_terms(state, y3, terms)
-            internal = state.forces.reshape(-1) + self._term_forces(y3, terms)
-            gradient = -internal if external is None else -internal - external
             h_data = stiffness.data.copy()
-            inertial = np.zeros_like(y_flat)
             if not quasi:
-                inertial = m * (y_flat - inertia_target) / (h * h)
-                dx = y_flat - x0_flat
-                gradient = gradient + inertial + cfg.rayleigh_mass * m * dx / h
                 h_data[self._diagonal(stiffness)] += m / (h * h) + cfg.rayleigh_mass * m / h
                 if damping is not None:
-                    gradient = gradient + cfg.rayleigh_stiffness * (damping @ dx) / h
                     h_data += (cfg.rayleigh_stiffness / h) * damping.data
-            scale = max(
-                float(np.linalg.norm(internal)),
-                float(np.linalg.norm(inertial)),
-                float(np.linalg.norm(external)) if external is not None else 0.0,
-            )
-            return gradient, h_data, stiffness, scale
-
-        def direction_for(y_flat, gradient, h_data, stiffness, tolerance):
             matrix = sp.csr_matrix(
                 (h_data, stiffness.indices, stiffness.indptr), shape=stiffness.shape
             )
             values = np.zeros_like(y_flat)
-            values[dofs] = target_flat - y_flat[dofs]
+            values[dofs] = targets - y_flat[dofs]
             system = ConstrainedSystem(matrix, -gradient, constrained, values)
             return self.solver.solve(system, tolerance=tolerance)
 
-        for iterations in range(1, cfg.newton_max_iterations + 1):  # noqa: B007
-            # Projected tangents make every direction descend but cost quadratic convergence
-            # (the clamped Hessian is not the true one), so far from the solution we project
-            # and near it we use the exact tangent, falling back to projection whenever the
-            # exact one does not give a descent direction.
-            project = bool(cfg.project_psd) and relative > _PROJECTION_SWITCH
-            gradient, h_data, stiffness, scale = linearise(y, project)
-            mismatch = float(np.max(np.abs(target_flat - y[dofs]))) if dofs.size else 0.0
+        # Start from the inertial prediction x + h v: for a probe moving steadily the free
+        # nodes keep moving much as they did, which saves Newton iterations.
+        y = x0_flat.copy() if quasi else inertia_target.copy()
+        energy, gradient, scale = evaluate(y)
+        total_linear = 0
+        worst_linear = 0.0
+        factorizations = 0
+        relative = math.inf
+        history: list[float] = []
+        converged = False
+        iterations = 0
+        while True:
+            mismatch = float(np.max(np.abs(targets - y[dofs]))) if dofs.size else 0.0
             relative = float(np.linalg.norm(gradient[free])) / scale if scale > 0 else 0.0
             history.append(relative)
-            if not np.isfinite(relative):
+            if not (np.isfinite(relative) and math.isfinite(energy)):
                 return self._failed(x0, v0, StepStatus.DIVERGED)
-            if mismatch == 0.0 and relative <= cfg.newton_tolerance:
+            converged = mismatch == 0.0 and relative <= cfg.newton_tolerance
+            if converged or iterations == cfg.newton_max_iterations:
                 break
+            iterations += 1
+            # Projected tangents make every direction descend but cost quadratic convergence
+            # (the clamped Hessian is not the true one): far from the solution we project,
+            # near it we use the exact tangent, falling back to projection whenever the exact
+            # one does not give a descent direction.
+            project = bool(cfg.project_psd) and relative > _PROJECTION_SWITCH
             # Inexact Newton: solve only as accurately as the current residual deserves.
             tolerance = min(1e-2, max(relative, 1e-10))
             try:
-                direction, report = direction_for(y, gradient, h_data, stiffness, tolerance)
-                descends = mismatch > 0.0 or float(gradient @ direction) < 0.0
+                step, report = direction(y, gradient, project, tolerance)
+                descends = mismatch > 0.0 or float(gradient @ step) < 0.0
                 if cfg.project_psd and not project and (report.indefinite or not descends):
-                    gradient, h_data, stiffness, scale = linearise(y, True)
                     total_linear += report.iterations
                     factorizations += int(report.factorized)
-                    direction, report = direction_for(y, gradient, h_data, stiffness, tolerance)
+                    step, report = direction(y, gradient, True, tolerance)
             except Exception:  # noqa: BLE001 - report, don't crash
                 return self._failed(x0, v0, StepStatus.SOLVER_FAILED)
             total_linear += report.iterations
             worst_linear = max(worst_linear, report.relative_residual)
             factorizations += int(report.factorized)
-            if not np.all(np.isfinite(direction)):
+            if not np.all(np.isfinite(step)):
                 return self._failed(x0, v0, StepStatus.SOLVER_FAILED)
-            y, energy = self._line_search(y, direction, gradient, mismatch, potential, energy)
-            if y is None:
-                break
-        else:
-            iterations = cfg.newton_max_iterations
-        if y is None:
-            return self._failed(x0, v0, StepStatus.DIVERGED)
+            found = self._line_search(y, step, gradient, mismatch, evaluate, energy)
+            if found is None:
+                return self._failed(x0, v0, StepStatus.DIVERGED)
+            y, energy, gradient, scale = found
         new_x = y.reshape(-1, 3)
         new_v = np.zeros_like(v0) if quasi else (new_x - x0) / h
         # Reaction at constrained dofs: the constraint force balancing the residual there.
@@ -480,22 +476,28 @@ class ImplicitIntegrator:
         )
         outcome.factorizations = factorizations
         outcome.newton_residuals = history
-        converged = relative <= cfg.newton_tolerance and (
-            not dofs.size or float(np.max(np.abs(target_flat - y[dofs]))) == 0.0
-        )
         if not converged and outcome.status is StepStatus.OK:
             outcome.status = StepStatus.NOT_CONVERGED
         return outcome
 
-    def _line_search(self, y, direction, gradient, mismatch, potential, energy):
-        """Backtracking Armijo search; returns (new y, its energy) or (None, inf) on failure."""
-        if not math.isfinite(energy):
-            energy, _ = potential(y)
-        slope = float(gradient @ direction)
+    def _rest_stiffness(self) -> sp.csr_matrix:
+        if self._rest_stiffness_matrix is None:
+            state = self.elasticity.evaluate(self._rest, tangent=True)
+            assert state.stiffness is not None
+            self._rest_stiffness_matrix = state.stiffness
+        return self._rest_stiffness_matrix
+
+    def _line_search(self, y, step, gradient, mismatch, evaluate, energy):
+        """Backtracking Armijo search along ``step``.
+
+        Returns (y, energy, gradient, scale) at the accepted point, or None when no finite
+        point was found.
+        """
+        slope = float(gradient @ step)
         alpha = 1.0
         while alpha >= _MIN_STEP_FRACTION:
-            trial = y + alpha * direction
-            trial_energy, _ = potential(trial)
+            trial = y + alpha * step
+            trial_energy, trial_gradient, trial_scale = evaluate(trial)
             if math.isfinite(trial_energy) and (
                 # While constraints still move the boundary the energy may rightly rise: accept
                 # any finite full step then; afterwards require sufficient decrease.
@@ -503,14 +505,14 @@ class ImplicitIntegrator:
                 or slope >= 0.0
                 or trial_energy <= energy + _ARMIJO_C * alpha * slope + 1e-14 * abs(energy)
             ):
-                return trial, trial_energy
+                return trial, trial_energy, trial_gradient, trial_scale
             alpha *= 0.5
-        # No decrease along the direction: accept the smallest step only if finite.
-        trial = y + _MIN_STEP_FRACTION * direction
-        trial_energy, _ = potential(trial)
+        # No decrease along the direction: keep the smallest step if it is finite.
+        trial = y + _MIN_STEP_FRACTION * step
+        trial_energy, trial_gradient, trial_scale = evaluate(trial)
         if math.isfinite(trial_energy):
-            return trial, trial_energy
-        return None, math.inf
+            return trial, trial_energy, trial_gradient, trial_scale
+        return None
 
     # ------------------------------------------------------------------ helpers
 
