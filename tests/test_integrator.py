@@ -89,7 +89,7 @@ def test_newton_converges_quadratically_under_prescribed_top() -> None:
     history = np.array(result.newton_residuals)
     assert history[-1] <= 1e-11
     # Near the solution (where robust mode uses the exact tangent, below a relative residual
-    # of 1e-2, after any fallback to projection) each residual is at most about the square
+    # of 0.1, after any fallback to projection) each residual is at most about the square
     # of the previous one.
     tail = [
         (a, b)

@@ -61,7 +61,7 @@ _BLOW_UP_EXTENTS = 2.0
 _ARMIJO_C = 1e-4
 _MIN_STEP_FRACTION = 2.0**-12
 # Relative Newton residual below which the exact (unprojected) tangent is tried first.
-_PROJECTION_SWITCH = 1e-2
+_PROJECTION_SWITCH = 1e-1
 
 
 class IntegrationMode(str, Enum):
@@ -106,7 +106,7 @@ class IntegratorConfig:
     rayleigh_stiffness: float = 0.1
     linear_solver: LinearSolverConfig | None = None
     project_psd: bool | None = None
-    newton_tolerance: float = 1e-6
+    newton_tolerance: float = 1e-4
     newton_max_iterations: int = 30
     max_subdivisions: int = 4
 

@@ -70,7 +70,7 @@ class SimulationConfig:
     project_psd: bool | None = None
     rayleigh_mass: float = 0.1
     rayleigh_stiffness: float = 0.1
-    newton_tolerance: float = 1e-6
+    newton_tolerance: float = 1e-4
     newton_max_iterations: int = 30
     max_subdivisions: int = 4
     gravity_m_s2: tuple[float, float, float] | None = None
