@@ -198,6 +198,108 @@ class StepOutcome:
     newton_residuals: list[float] = field(default_factory=list)
 
 
+@dataclass
+class PaperSystem:
+    """The linear system of one paper-mode step, with what is needed to finish the step.
+
+    Attributes:
+        system: the constrained system (matrix eliminated in place).
+        original_data: the matrix's CSR data before elimination (for reactions).
+        rhs: the right-hand side before elimination.
+        dofs: the constrained dofs.
+    """
+
+    system: ConstrainedSystem
+    original_data: NDArray[np.float64]
+    rhs: NDArray[np.float64]
+    dofs: NDArray[np.int64]
+
+
+class IncrementalPotential:
+    """The incremental potential of one robust step and its derivatives.
+
+    E(y) = |y - x - h v|^2_M / (2 h^2) + Psi(y) + sum(terms) - f_ext . y + |y - x|^2_D / (2 h),
+    D = r_M M + r_K K_rest (the rest stiffness: constant, PSD, no assembly per step).
+    Quasi-static: E(y) = Psi(y) + sum(terms) - f_ext . y.
+    """
+
+    def __init__(self, integrator: ImplicitIntegrator, x0, v0, h, dofs, targets, terms) -> None:
+        cfg = integrator.config
+        self.integrator = integrator
+        self.h = h
+        self.x0_flat = x0.reshape(-1)
+        self.inertia_target = self.x0_flat + h * v0.reshape(-1)
+        self.dofs = dofs
+        self.targets = targets
+        self.terms = terms
+        self.constrained = integrator._dof_mask(dofs)
+        self.quasi = cfg.quasi_static
+        self.mass = integrator.mass_dof
+        self.external = (
+            integrator.external_force.reshape(-1) if integrator.external_force is not None else None
+        )
+        self.damping = (
+            integrator._rest_stiffness() if not self.quasi and cfg.rayleigh_stiffness > 0 else None
+        )
+
+    def start(self) -> NDArray[np.float64]:
+        """The first iterate: the inertial prediction x + h v (x when quasi-static)."""
+        return self.x0_flat.copy() if self.quasi else self.inertia_target.copy()
+
+    def evaluate(self, y_flat: NDArray[np.float64]) -> tuple[float, NDArray[np.float64], float]:
+        """(energy [J], gradient [N] (3N,), force scale [N]) at y [m] (3N,); no tangent."""
+        cfg, h, m = self.integrator.config, self.h, self.mass
+        y3 = y_flat.reshape(-1, 3)
+        state = self.integrator.elasticity.evaluate(y3, tangent=False)
+        energy = state.energy_j
+        internal = state.forces.reshape(-1)
+        for term in self.terms:
+            evaluation = term.evaluate(y3)
+            energy += evaluation.energy_j
+            internal = internal + evaluation.forces.reshape(-1)
+        gradient = -internal
+        scale = float(np.linalg.norm(internal))
+        if self.external is not None:
+            energy -= float(self.external @ y_flat)
+            gradient = gradient - self.external
+            scale = max(scale, float(np.linalg.norm(self.external)))
+        if not self.quasi:
+            d = y_flat - self.inertia_target
+            inertial = m * d / (h * h)
+            energy += 0.5 * float(d @ inertial)
+            dx = y_flat - self.x0_flat
+            damping_force = cfg.rayleigh_mass * m * dx / h
+            if self.damping is not None:
+                damping_force = damping_force + cfg.rayleigh_stiffness * (self.damping @ dx) / h
+            energy += 0.5 * float(dx @ damping_force)
+            gradient = gradient + inertial + damping_force
+            scale = max(scale, float(np.linalg.norm(inertial)))
+        return energy, gradient, scale
+
+    def hessian_system(
+        self, y_flat: NDArray[np.float64], rhs: NDArray[np.float64], project: bool
+    ) -> ConstrainedSystem:
+        """Hessian at y with constrained increments reaching the targets, right-hand side rhs."""
+        integrator, cfg, h, m = self.integrator, self.integrator.config, self.h, self.mass
+        y3 = y_flat.reshape(-1, 3)
+        state = integrator.elasticity.evaluate(y3, tangent=True, project_psd=project)
+        stiffness = integrator._stiffness_with_terms(state, y3, self.terms)
+        data = stiffness.data.copy()
+        if not self.quasi:
+            data[integrator._diagonal(stiffness)] += m / (h * h) + cfg.rayleigh_mass * m / h
+            if self.damping is not None:
+                data += (cfg.rayleigh_stiffness / h) * self.damping.data
+        matrix = sp.csr_matrix((data, stiffness.indices, stiffness.indptr), shape=stiffness.shape)
+        values = np.zeros_like(y_flat)
+        values[self.dofs] = self.targets - y_flat[self.dofs]
+        return ConstrainedSystem(matrix, rhs, self.constrained, values)
+
+    def newton_direction(self, y_flat, gradient, project, tolerance):
+        """Newton direction [m] (3N,) and the solve report."""
+        system = self.hessian_system(y_flat, -gradient, project)
+        return self.integrator.solver.solve(system, tolerance=tolerance)
+
+
 @numba.njit(cache=True)
 def _row_products(indptr, indices, data, rows, x):  # pragma: no cover - compiled
     """(A x)[rows] for a CSR matrix."""
@@ -279,6 +381,19 @@ class ImplicitIntegrator:
     # ------------------------------------------------------------------ paper
 
     def _paper_step(self, x, v, h, dofs, targets, terms) -> StepOutcome:
+        linear = self.paper_system(x, v, h, dofs, targets, terms)
+        try:
+            solution, report = self.solver.solve(linear.system)
+        except Exception:  # noqa: BLE001 - a failed factorisation is a step failure, not a crash
+            return self._failed(x, v, StepStatus.SOLVER_FAILED)
+        return self.paper_finish(x, v, h, linear, solution, report)
+
+    def paper_system(self, x, v, h, dofs, targets, terms=()) -> PaperSystem:
+        """The linear system of the paper's eq. (5) (or K dx = f when quasi-static).
+
+        The unknown is dv [m/s] (dx [m] when quasi-static), with constrained dofs set so that
+        the step ends at ``targets``.
+        """
         cfg = self.config
         state = self.elasticity.evaluate(x, tangent=True, project_psd=bool(cfg.project_psd))
         stiffness = self._stiffness_with_terms(state, x, terms)
@@ -286,49 +401,43 @@ class ImplicitIntegrator:
         if self.external_force is not None:
             force = force + self.external_force.reshape(-1)
         v_flat = v.reshape(-1)
-        k_data = stiffness.data
-        kv = stiffness @ v_flat
-        constrained = self._dof_mask(dofs)
-        values = np.zeros(x.size)
         x_flat = x.reshape(-1)
+        values = np.zeros(x.size)
         if cfg.quasi_static:
-            # K dx = f with dx prescribed at constrained dofs.
-            matrix = sp.csr_matrix(
-                (k_data.copy(), stiffness.indices, stiffness.indptr), shape=stiffness.shape
-            )
+            data = stiffness.data.copy()
             rhs = force
             values[dofs] = targets - x_flat[dofs]
         else:
             m = self.mass_dof
-            a_data = (h * cfg.rayleigh_stiffness + h * h) * k_data
-            a_data[self._diagonal(stiffness)] += (1.0 + h * cfg.rayleigh_mass) * m
-            matrix = sp.csr_matrix(
-                (a_data, stiffness.indices, stiffness.indptr), shape=stiffness.shape
-            )
+            kv = stiffness @ v_flat
+            data = (h * cfg.rayleigh_stiffness + h * h) * stiffness.data
+            data[self._diagonal(stiffness)] += (1.0 + h * cfg.rayleigh_mass) * m
             rhs = (
                 h * (force - cfg.rayleigh_mass * m * v_flat - cfg.rayleigh_stiffness * kv)
                 - h * h * kv
             )
             values[dofs] = (targets - x_flat[dofs]) / h - v_flat[dofs]
+        matrix = sp.csr_matrix((data, stiffness.indices, stiffness.indptr), shape=stiffness.shape)
         original = matrix.data.copy()
-        system = ConstrainedSystem(matrix, rhs, constrained, values)
-        try:
-            solution, report = self.solver.solve(system)
-        except Exception:  # noqa: BLE001 - a failed factorisation is a step failure, not a crash
-            return self._failed(x, v, StepStatus.SOLVER_FAILED)
+        system = ConstrainedSystem(matrix, rhs, self._dof_mask(dofs), values)
+        return PaperSystem(system, original, rhs, dofs)
+
+    def paper_finish(self, x, v, h, linear: PaperSystem, solution, report) -> StepOutcome:
+        """Update the state from a solution of :meth:`paper_system`; reactions included."""
         if not np.all(np.isfinite(solution)):
             return self._failed(x, v, StepStatus.SOLVER_FAILED)
+        matrix, dofs = linear.system.matrix, linear.dofs
         # Reactions: what the constraints add so that the constrained rows balance.
-        rows_matrix_times = _row_products(matrix.indptr, matrix.indices, original, dofs, solution)
+        rows = _row_products(matrix.indptr, matrix.indices, linear.original_data, dofs, solution)
         reaction = np.zeros(x.size)
-        if cfg.quasi_static:
+        if self.config.quasi_static:
             new_x = x + solution.reshape(-1, 3)
             new_v = np.zeros_like(v)
-            reaction[dofs] = rows_matrix_times - rhs[dofs]
+            reaction[dofs] = rows - linear.rhs[dofs]
         else:
             new_v = v + solution.reshape(-1, 3)
             new_x = x + h * new_v
-            reaction[dofs] = (rows_matrix_times - rhs[dofs]) / h
+            reaction[dofs] = (rows - linear.rhs[dofs]) / h
         return self._finish(
             x, v, new_x, new_v, reaction, report, newton_iterations=1, newton_residual=0.0
         )
@@ -352,69 +461,20 @@ class ImplicitIntegrator:
         merged.subdivisions += 1
         return merged if _rank(merged) <= _rank(outcome) else outcome
 
+    def incremental_potential(self, x0, v0, h, dofs, targets, terms=()) -> IncrementalPotential:
+        """The step's incremental potential (robust mode), for Newton and constrained solvers."""
+        return IncrementalPotential(self, x0, v0, h, dofs, targets, terms)
+
     def _newton(self, x0, v0, h, dofs, targets, terms) -> StepOutcome:
         cfg = self.config
         quasi = cfg.quasi_static
-        m = self.mass_dof
-        x0_flat = x0.reshape(-1)
-        inertia_target = x0_flat + h * v0.reshape(-1)
-        constrained = self._dof_mask(dofs)
-        free = ~constrained
-        external = self.external_force.reshape(-1) if self.external_force is not None else None
-        # Stiffness-proportional damping uses the rest stiffness: constant, PSD, and free of
-        # an extra assembly per step (the paper mode uses the current one, as SOFA does).
-        damping = self._rest_stiffness() if not quasi and cfg.rayleigh_stiffness > 0 else None
-
-        def evaluate(y_flat):
-            """Incremental potential, its gradient and the force scale at y (no tangent)."""
-            y3 = y_flat.reshape(-1, 3)
-            state = self.elasticity.evaluate(y3, tangent=False)
-            energy = state.energy_j
-            internal = state.forces.reshape(-1)
-            for term in terms:
-                evaluation = term.evaluate(y3)
-                energy += evaluation.energy_j
-                internal = internal + evaluation.forces.reshape(-1)
-            gradient = -internal
-            scale = float(np.linalg.norm(internal))
-            if external is not None:
-                energy -= float(external @ y_flat)
-                gradient = gradient - external
-                scale = max(scale, float(np.linalg.norm(external)))
-            if not quasi:
-                d = y_flat - inertia_target
-                inertial = m * d / (h * h)
-                energy += 0.5 * float(d @ inertial)
-                dx = y_flat - x0_flat
-                damping_force = cfg.rayleigh_mass * m * dx / h
-                if damping is not None:
-                    damping_force = damping_force + cfg.rayleigh_stiffness * (damping @ dx) / h
-                energy += 0.5 * float(dx @ damping_force)
-                gradient = gradient + inertial + damping_force
-                scale = max(scale, float(np.linalg.norm(inertial)))
-            return energy, gradient, scale
-
-        def direction(y_flat, gradient, project, tolerance):
-            """Newton direction from the (optionally projected) Hessian at y."""
-            y3 = y_flat.reshape(-1, 3)
-            state = self.elasticity.evaluate(y3, tangent=True, project_psd=project)
-            stiffness = self._stiffness_with_terms(state, y3, terms)
-            h_data = stiffness.data.copy()
-            if not quasi:
-                h_data[self._diagonal(stiffness)] += m / (h * h) + cfg.rayleigh_mass * m / h
-                if damping is not None:
-                    h_data += (cfg.rayleigh_stiffness / h) * damping.data
-            matrix = sp.csr_matrix(
-                (h_data, stiffness.indices, stiffness.indptr), shape=stiffness.shape
-            )
-            values = np.zeros_like(y_flat)
-            values[dofs] = targets - y_flat[dofs]
-            system = ConstrainedSystem(matrix, -gradient, constrained, values)
-            return self.solver.solve(system, tolerance=tolerance)
+        free = ~self._dof_mask(dofs)
+        potential = self.incremental_potential(x0, v0, h, dofs, targets, terms)
+        evaluate, direction = potential.evaluate, potential.newton_direction
 
         # Start from the inertial prediction x + h v: for a probe moving steadily the free
         # nodes keep moving much as they did, which saves Newton iterations.
-        y = x0_flat.copy() if quasi else inertia_target.copy()
+        y = potential.start()
         energy, gradient, scale = evaluate(y)
         total_linear = 0
         worst_linear = 0.0

@@ -161,12 +161,16 @@ class ContactModel(abc.ABC):
         """
         position = np.asarray(position_world, dtype=np.float64).reshape(-1)
         if position.shape != (3,) or not np.all(np.isfinite(position)):
-            raise TissueInputError(f"probe position must be 3 finite numbers [m]; got {position_world!r}")
+            raise TissueInputError(
+                f"probe position must be 3 finite numbers [m]; got {position_world!r}"
+            )
         start = time.perf_counter()
         self.probe.set_pose(position, quat_wxyz)
         status, points, forces, diagnostics = self._advance()
         force, torque = (
-            self.probe.wrench_about_origin(points, forces) if points.shape[0] else (np.zeros(3), np.zeros(3))
+            self.probe.wrench_about_origin(points, forces)
+            if points.shape[0]
+            else (np.zeros(3), np.zeros(3))
         )
         if status not in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
             self._time += self.dt
