@@ -339,6 +339,7 @@ class ImplicitIntegrator:
         self._blow_up_m = _BLOW_UP_EXTENTS * float(np.max(np.ptp(rest, axis=0)))
         self._diagonal_positions: NDArray[np.int64] | None = None
         self._rest_stiffness_matrix: sp.csr_matrix | None = None
+        self._keys: NDArray[np.int64] | None = None
 
     # ------------------------------------------------------------------ public
 
@@ -409,13 +410,16 @@ class ImplicitIntegrator:
             values[dofs] = targets - x_flat[dofs]
         else:
             m = self.mass_dof
-            kv = stiffness @ v_flat
-            data = (h * cfg.rayleigh_stiffness + h * h) * stiffness.data
+            elastic = state.stiffness
+            assert elastic is not None
+            # Rayleigh damping is the tissue's: it uses the elastic stiffness only, never the
+            # contact springs (damping them would make the contact viscous).
+            data = h * h * stiffness.data + h * cfg.rayleigh_stiffness * elastic.data
             data[self._diagonal(stiffness)] += (1.0 + h * cfg.rayleigh_mass) * m
-            rhs = (
-                h * (force - cfg.rayleigh_mass * m * v_flat - cfg.rayleigh_stiffness * kv)
-                - h * h * kv
+            damping_force = cfg.rayleigh_mass * m * v_flat + cfg.rayleigh_stiffness * (
+                elastic @ v_flat
             )
+            rhs = h * (force - damping_force) - h * h * (stiffness @ v_flat)
             values[dofs] = (targets - x_flat[dofs]) / h - v_flat[dofs]
         matrix = sp.csr_matrix((data, stiffness.indices, stiffness.indptr), shape=stiffness.shape)
         original = matrix.data.copy()
@@ -626,6 +630,13 @@ class ImplicitIntegrator:
             self._diagonal_positions = positions
         return self._diagonal_positions
 
+    def _pattern_keys(self, matrix: sp.csr_matrix) -> NDArray[np.int64]:
+        """row * n + col of every stored entry, computed once for the fixed pattern."""
+        if self._keys is None:
+            rows = np.repeat(np.arange(matrix.shape[0], dtype=np.int64), np.diff(matrix.indptr))
+            self._keys = rows * matrix.shape[1] + matrix.indices
+        return self._keys
+
     def _stiffness_with_terms(self, state: ElasticState, positions, terms) -> sp.csr_matrix:
         stiffness = state.stiffness
         assert stiffness is not None
@@ -636,7 +647,10 @@ class ImplicitIntegrator:
             evaluation = term.evaluate(positions)
             if evaluation.stiffness_values.size:
                 where = _pattern_positions(
-                    stiffness, evaluation.stiffness_rows, evaluation.stiffness_cols
+                    stiffness,
+                    evaluation.stiffness_rows,
+                    evaluation.stiffness_cols,
+                    self._pattern_keys(stiffness),
                 )
                 np.add.at(data, where, evaluation.stiffness_values)
         return sp.csr_matrix((data, stiffness.indices, stiffness.indptr), shape=stiffness.shape)
@@ -659,15 +673,15 @@ def node_dofs(nodes: NDArray[np.int64], axes: tuple[int, ...] = (0, 1, 2)) -> ND
     return (3 * nodes[:, None] + np.asarray(axes, dtype=np.int64)).reshape(-1)
 
 
-def _pattern_positions(matrix: sp.csr_matrix, rows, cols) -> NDArray[np.int64]:
-    """Positions in a CSR data array of entries (rows, cols), which must be in the pattern."""
-    starts = matrix.indptr[rows]
-    stops = matrix.indptr[rows + 1]
-    where = np.empty(rows.shape[0], dtype=np.int64)
-    for i in range(rows.shape[0]):
-        local = np.searchsorted(matrix.indices[starts[i] : stops[i]], cols[i])
-        where[i] = starts[i] + local
-    if np.any(matrix.indices[where] != cols):
+def _pattern_positions(matrix: sp.csr_matrix, rows, cols, keys) -> NDArray[np.int64]:
+    """Positions in a CSR data array of entries (rows, cols), which must be in the pattern.
+
+    ``keys`` are the pattern's row * n + col in storage order (sorted for sorted CSR).
+    """
+    wanted = rows.astype(np.int64) * matrix.shape[1] + cols
+    where = np.searchsorted(keys, wanted)
+    where = np.minimum(where, keys.size - 1)
+    if np.any(keys[where] != wanted):
         raise ValueError("an energy term's stiffness couples dofs outside the mesh's pattern")
     return where
 

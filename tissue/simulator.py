@@ -331,19 +331,32 @@ class TissueSimulator:
         """
         dt = self.config.tissue_dt if dt is None else float(dt)
         start = time.perf_counter()
+        dofs, targets = self.constraints()
+        outcome = self.integrator.step(self._positions, self._velocities, dt, dofs, targets, terms)
+        return self.commit(outcome, dt, start)
+
+    def commit(self, outcome: StepOutcome, dt: float, started: float) -> StepResult:
+        """Adopt the state of an integrator outcome (unless it failed); the step's result.
+
+        For contact solvers that drive the integrator's pieces themselves. ``started`` is
+        the ``time.perf_counter()`` value when the step began.
+        """
+        if outcome.status not in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
+            self._positions = outcome.positions
+            self._velocities = outcome.velocities
+            self._time += dt
+        elapsed_ms = 1e3 * (time.perf_counter() - started)
+        return self._result(outcome, elapsed_ms)
+
+    def constraints(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """The constrained dofs of the next step (fixed, then prescribed) and their targets [m]."""
         dofs, targets = self._constraints()
         if self.config.quasi_static and (
             self._checked_dofs is None or not np.array_equal(dofs, self._checked_dofs)
         ):
             check_rigid_motion_removed(self.mesh, dofs)
             self._checked_dofs = dofs
-        outcome = self.integrator.step(self._positions, self._velocities, dt, dofs, targets, terms)
-        if outcome.status not in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
-            self._positions = outcome.positions
-            self._velocities = outcome.velocities
-            self._time += dt
-        elapsed_ms = 1e3 * (time.perf_counter() - start)
-        return self._result(outcome, elapsed_ms)
+        return dofs, targets
 
     def _constraints(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         fixed = self._fixed_dofs

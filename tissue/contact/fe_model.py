@@ -1,0 +1,118 @@
+"""What the three FE contact strategies share: the simulator, and finding contacts."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from tissue.contact.base import ContactModel, SurfacePoints
+from tissue.material import TissueMaterials
+from tissue.mesh import TetMesh
+from tissue.probe import Probe, ProbeShape
+from tissue.simulator import SimulationConfig, TissueSimulator
+
+
+@dataclass(frozen=True)
+class Contacts:
+    """Collision-surface points near or inside the probe.
+
+    Attributes:
+        points: indices into the surface points, (k,).
+        positions: their positions [m], (k, 3).
+        distance: signed distance to the probe surface [m], (k,) (negative inside).
+        normal: the probe's outward normal at the closest point, (k, 3).
+    """
+
+    points: NDArray[np.int64]
+    positions: NDArray[np.float64]
+    distance: NDArray[np.float64]
+    normal: NDArray[np.float64]
+
+    @property
+    def count(self) -> int:
+        return int(self.points.size)
+
+
+def detect_contacts(
+    surface: SurfacePoints,
+    node_positions: NDArray[np.float64],
+    probe: Probe,
+    alarm_distance_m: float,
+) -> Contacts:
+    """Collision detection: surface points closer to the probe than ``alarm_distance_m`` [m].
+
+    Points outside the probe's bounding sphere (plus the alarm distance) are skipped before
+    the signed distance is evaluated: the probe touches a small part of the skin.
+    """
+    positions = surface.positions(node_positions)
+    reach = probe.shape.bounding_radius_m + alarm_distance_m
+    near = np.flatnonzero(np.sum((positions - probe.position_world) ** 2, axis=1) <= reach * reach)
+    if near.size == 0:
+        empty = np.zeros((0, 3))
+        return Contacts(near, empty, np.zeros(0), empty)
+    distance, normal = probe.signed_distance_world(positions[near])
+    keep = distance < alarm_distance_m
+    return Contacts(near[keep], positions[near[keep]], distance[keep], normal[keep])
+
+
+def constraint_rows(
+    surface: SurfacePoints, contacts: Contacts, dof_count: int, constrained: NDArray[np.bool_]
+) -> sp.csr_matrix:
+    """Jacobian of the contact gaps: row i is n_i^T times the embedding of point i.
+
+    Shape (k, dof_count); entries at constrained dofs are dropped (they cannot move).
+    """
+    tet_nodes = surface.embedding.tet_nodes[contacts.points]  # (k, 4)
+    weights = surface.embedding.weights[contacts.points]  # (k, 4)
+    rows = np.repeat(np.arange(contacts.count), 12)
+    cols = (3 * tet_nodes[:, :, None] + np.arange(3)).reshape(-1)
+    values = (weights[:, :, None] * contacts.normal[:, None, :]).reshape(-1)
+    keep = ~constrained[cols]
+    matrix = sp.csr_matrix(
+        (values[keep], (rows[keep], cols[keep])), shape=(contacts.count, dof_count)
+    )
+    matrix.sum_duplicates()
+    return matrix
+
+
+class FEContactModel(ContactModel):
+    """A contact strategy on the FE tissue simulator.
+
+    Args:
+        mesh: the tissue mesh.
+        probe_shape: the rigid tool.
+        materials: per-region materials (defaults as the published scene).
+        config: how the tissue is simulated (``mode="paper"`` or ``"robust"``).
+    """
+
+    def __init__(
+        self,
+        mesh: TetMesh,
+        probe_shape: ProbeShape,
+        materials: TissueMaterials | None = None,
+        config: SimulationConfig | None = None,
+    ) -> None:
+        super().__init__(mesh, probe_shape)
+        self.sim = TissueSimulator(mesh, materials, config)
+
+    @property
+    def node_positions(self) -> NDArray[np.float64]:
+        return self.sim.positions
+
+    @property
+    def dt(self) -> float:
+        return self.sim.config.tissue_dt
+
+    def _reset_tissue(self) -> None:
+        self.sim.reset()
+
+    def surface_points_on_probe(
+        self, contacts: Contacts, magnitudes: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Contact points [m] and forces on the probe [N] from force magnitudes on the tissue."""
+        active = magnitudes > 0.0
+        forces_on_probe = -magnitudes[active, None] * contacts.normal[active]
+        return contacts.positions[active], forces_on_probe

@@ -1,0 +1,178 @@
+"""Penalty contact (Tagliabue et al. 2020, section 2.1.1; SOFA's ``PenalityContactForceField``).
+
+Every collision-surface point closer to the probe than the contact distance gets a
+one-sided spring along the probe's outward normal, f = k_s delta n (eq. 6), delta the
+penetration past the contact distance. The force is spread to the volume nodes through the
+point's barycentric embedding, and its stiffness k_s n n^T (normal frozen, frictionless)
+enters the implicit system, so the step stays implicit in the contact too.
+
+In ``paper`` mode the springs are linearised once per step at the start positions, as
+SOFA does; in ``robust`` mode they are an energy term of the step's incremental potential,
+re-evaluated at every Newton iterate (so contacts appearing during the step are caught).
+
+Limitations: the constraint is only approximately satisfied (penetration ~ force / k_s);
+a large k_s worsens the conditioning of the system (the paper's stability problem on fine
+meshes). The default k_s scales with the tissue's modulus and the surface's resolution
+(see :class:`PenaltyParams`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tissue.contact.base import ContactMethod, SurfacePoints
+from tissue.contact.fe_model import FEContactModel, detect_contacts
+from tissue.errors import ConfigError
+from tissue.integrator import TermEvaluation
+from tissue.material import TissueMaterials
+from tissue.mesh import TetMesh
+from tissue.probe import Probe, ProbeShape
+from tissue.simulator import SimulationConfig
+from tissue.status import StepStatus
+
+# The default k_s makes a contact point as stiff as this many times the tissue under it
+# (E times the surface's mean edge length): penetrations stay about 2 % of the indentation.
+DEFAULT_STIFFNESS_RATIO = 50.0
+
+
+@dataclass(frozen=True)
+class PenaltyParams:
+    """Penalty-contact settings.
+
+    Attributes:
+        stiffness_n_per_m: k_s [N/m] per contact point; None picks
+            ``DEFAULT_STIFFNESS_RATIO`` x E_tissue x mean surface edge length.
+        contact_distance_m: springs act when a point is closer than this to the probe [m]
+            (the published scene used 1 mm; 0 makes the probe surface itself the contact).
+    """
+
+    stiffness_n_per_m: float | None = None
+    contact_distance_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.stiffness_n_per_m is not None and not (
+            np.isfinite(self.stiffness_n_per_m) and self.stiffness_n_per_m > 0
+        ):
+            raise ConfigError(
+                f"penalty stiffness k_s must be a positive number of N/m; got "
+                f"{self.stiffness_n_per_m!r} (leave it None for the default)"
+            )
+        if not (np.isfinite(self.contact_distance_m) and self.contact_distance_m >= 0):
+            raise ConfigError(f"contact_distance_m must be >= 0; got {self.contact_distance_m!r}")
+
+
+class PenaltyTerm:
+    """The penalty springs as an energy term of the tissue step (see the module docstring)."""
+
+    def __init__(self, surface: SurfacePoints, probe: Probe, stiffness: float, distance: float):
+        self.surface = surface
+        self.probe = probe
+        self.stiffness = stiffness
+        self.distance = distance
+        self._cache_key: NDArray[np.float64] | None = None
+        self._cache: TermEvaluation | None = None
+        self.last_contacts: Any = None
+        self.last_magnitudes = np.zeros(0)
+
+    def evaluate(self, positions: NDArray[np.float64]) -> TermEvaluation:
+        # One step asks for forces and stiffness at the same positions several times.
+        key = self._cache_key
+        cached = key is not None and key.shape == positions.shape and np.array_equal(key, positions)
+        if cached and self._cache is not None:
+            return self._cache
+        contacts = detect_contacts(self.surface, positions, self.probe, self.distance)
+        depth = self.distance - contacts.distance  # > 0 for active springs
+        magnitude = self.stiffness * np.maximum(depth, 0.0)
+        node_count = positions.shape[0]
+        point_forces = magnitude[:, None] * contacts.normal  # on the tissue, away from the probe
+        tet_nodes = self.surface.embedding.tet_nodes[contacts.points]
+        weights = self.surface.embedding.weights[contacts.points]
+        forces = np.zeros((node_count, 3))
+        np.add.at(forces, tet_nodes, weights[:, :, None] * point_forces[:, None, :])
+        # k_s (w_a n)(w_b n)^T for every pair of the point's tet nodes; normal frozen.
+        active = depth > 0.0
+        w, n, t = weights[active], contacts.normal[active], tet_nodes[active]
+        blocks = (
+            self.stiffness
+            * w[:, :, None, None, None]
+            * w[:, None, :, None, None]
+            * n[:, None, None, :, None]
+            * n[:, None, None, None, :]
+        )  # (k, 4, 4, 3, 3)
+        row_nodes = np.broadcast_to(t[:, :, None, None, None], blocks.shape)
+        col_nodes = np.broadcast_to(t[:, None, :, None, None], blocks.shape)
+        row_axes = np.broadcast_to(np.arange(3)[None, None, None, :, None], blocks.shape)
+        col_axes = np.broadcast_to(np.arange(3)[None, None, None, None, :], blocks.shape)
+        evaluation = TermEvaluation(
+            energy_j=0.5 * self.stiffness * float(np.sum(np.maximum(depth, 0.0) ** 2)),
+            forces=forces,
+            stiffness_rows=(3 * row_nodes + row_axes).reshape(-1),
+            stiffness_cols=(3 * col_nodes + col_axes).reshape(-1),
+            stiffness_values=blocks.reshape(-1),
+        )
+        self._cache_key = positions.copy()
+        self._cache = evaluation
+        self.last_contacts = contacts
+        self.last_magnitudes = magnitude
+        return evaluation
+
+
+class PenaltyContact(FEContactModel):
+    """Penalty contact between the rigid probe and the FE tissue's collision surface."""
+
+    method = ContactMethod.PENALTY
+
+    def __init__(
+        self,
+        mesh: TetMesh,
+        probe_shape: ProbeShape,
+        materials: TissueMaterials | None = None,
+        config: SimulationConfig | None = None,
+        params: PenaltyParams | None = None,
+    ) -> None:
+        super().__init__(mesh, probe_shape, materials, config)
+        self.params = params or PenaltyParams()
+        stiffness = self.params.stiffness_n_per_m
+        if stiffness is None:
+            stiffness = (
+                DEFAULT_STIFFNESS_RATIO
+                * self.sim.materials.tissue.young_pa
+                * _mean_edge(self.surface, mesh.nodes)
+            )
+        self.stiffness_n_per_m = float(stiffness)
+        self.term = PenaltyTerm(
+            self.surface, self.probe, self.stiffness_n_per_m, self.params.contact_distance_m
+        )
+
+    def _advance(
+        self,
+    ) -> tuple[StepStatus, NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
+        result = self.sim.step(terms=(self.term,))
+        # Forces at the state the step ended in: the springs' final pull on the probe.
+        self.term.evaluate(self.sim.positions)
+        contacts, magnitudes = self.term.last_contacts, self.term.last_magnitudes
+        points, forces = self.surface_points_on_probe(contacts, magnitudes)
+        return result.status, points, forces, _diagnostics(result, self.stiffness_n_per_m)
+
+
+def _mean_edge(surface: SurfacePoints, node_positions: NDArray[np.float64]) -> float:
+    vertices = surface.positions(node_positions)
+    triangles = surface.triangles
+    edges = vertices[triangles] - vertices[np.roll(triangles, 1, axis=1)]
+    return float(np.mean(np.linalg.norm(edges, axis=2)))
+
+
+def _diagnostics(result: Any, stiffness: float) -> dict[str, Any]:
+    return {
+        "stiffness_n_per_m": stiffness,
+        "newton_iterations": result.newton_iterations,
+        "linear_iterations": result.linear_iterations,
+        "linear_residual": result.linear_residual,
+        "subdivisions": result.subdivisions,
+        "min_volume_ratio": result.min_volume_ratio,
+        "tissue_ms": result.compute_ms,
+    }
