@@ -1,4 +1,4 @@
-"""The XPBD tissue backend: rest, pressing, force balance, release, failures, config, calibration."""
+"""The XPBD tissue backend: rest, pressing, force balance, release, failures, config, fit."""
 
 from __future__ import annotations
 
@@ -147,11 +147,11 @@ def test_compliant_contact_penetrates_in_proportion(block: TetMesh) -> None:
     assert result.penetration_max_m == pytest.approx(compliance * largest, rel=0.1)
 
 
-def _tets_to_nan(x, *args) -> None:  # noqa: ANN001 - stands in for the numba kernel
+def _tets_to_nan(x, *args) -> None:  # stands in for the numba kernel
     x[0, 0] = np.nan
 
 
-def _tets_invert(x, inv_mass, tets, *args) -> None:  # noqa: ANN001
+def _tets_invert(x, inv_mass, tets, *args) -> None:
     # Move the first free node of tet 0 through the opposite face: det F < 0, still finite.
     nodes = tets[0]
     free = nodes[inv_mass[nodes] > 0.0][0]

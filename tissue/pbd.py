@@ -255,19 +255,21 @@ def _project_tets(
         x: node positions [m], (node_count, 3), updated in place.
         inv_mass: inverse lumped masses [1/kg], (node_count,), 0 at fixed nodes.
         tets: (tet_count, 4). dm_inv: inverse rest edge matrices [1/m], (tet_count, 3, 3).
-        alpha_dev, alpha_hyd: time-scaled compliances alpha / h^2 [1/(J s^2)... per tet],
-            (tet_count,).
+        alpha_dev, alpha_hyd: time-scaled compliances alpha / h^2 [1/(kg m^2)] (the
+            constraints are dimensionless, alpha in 1/J), (tet_count,).
         gamma: rest offset 1 + mu / lambda' of the hydrostatic constraint, (tet_count,).
-        lam_dev, lam_hyd: this substep's multipliers, (tet_count,), updated in place.
+        lam_dev, lam_hyd: this substep's multipliers [kg m^2], (tet_count,), updated.
         support: per-node sum of grad C * d lambda at fixed nodes, (node_count, 3), updated;
             divided by h^2 it is the elastic force on the fixed nodes.
     """
+    # Scratch buffers allocated once: an allocation per tet would cost as much as the maths.
     g = np.empty((4, 3))
     gh = np.empty((4, 3))
+    f = np.empty((3, 3))
+    cof = np.empty((3, 3))
     for t in range(tets.shape[0]):
         i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
         # F = Ds Dm^-1, Ds columns are the edges from node 0.
-        f = np.zeros((3, 3))
         for a in range(3):
             e1 = x[i1, a] - x[i0, a]
             e2 = x[i2, a] - x[i0, a]
@@ -280,7 +282,6 @@ def _project_tets(
                 norm += f[a, b] * f[a, b]
         norm = math.sqrt(norm)
         # Cofactor of F = d det F / dF: column b is the cross product of the other two columns.
-        cof = np.empty((3, 3))
         for b in range(3):
             c1 = (b + 1) % 3
             c2 = (b + 2) % 3
@@ -440,9 +441,15 @@ class PBDContact(ContactModel):
         Not converged per step: XPBD with a few sweeps is softer than the material and only
         approaches the FE through the calibrated compliance scales, which hold for the
         calibration's mesh resolution, substep count and loading; other meshes or settings
-        need :func:`calibrate_pbd` again. Frictionless only. Forces are time averages over the
-        step, and at the ends of a fast motion they include inertia. Stresses are not
-        reported.
+        need :func:`calibrate_pbd` again (at level 4126, 15 and 20 substeps give +14 % and
+        +22 % force with the same scales). Too few substeps let the hard contact crush the
+        surface tets: at level 4126, 5 substeps end INVERTED with almost no force. Contact
+        planes are taken once per substep from the exact SDF at the predicted positions, so
+        the probe must move less than about half its thickness per substep (1.3 mm for the
+        linear face, i.e. about 0.6 m/s at the defaults) or points can tunnel through it.
+        Frictionless only. Forces are time averages over the step and include inertia during
+        fast motion. Stresses are not reported. Serial Gauss-Seidel (one core): about 3 ms
+        per step at 4.1k tets with the defaults.
     """
 
     method = ContactMethod.PBD
