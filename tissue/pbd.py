@@ -31,6 +31,10 @@ sweeps over all constraints (multipliers reset to zero at each substep), and v =
 * Masses: lumped, rho V / 4 per tet corner, from the region densities. Fixed nodes
   (``mesh.fixed_nodes``) get inverse mass 0 and never move.
 * Damping: mass-proportional, v <- v exp(-damping_per_s h) each substep.
+* Solver: plain serial Gauss-Seidel in mesh order (numba). It converges best per sweep and is
+  deterministic; graph colouring would only pay for a parallel sweep, which on the 2 cores
+  this project targets gains at most 2 x against a barrier per colour, and the defaults
+  already run in about 3 ms per step at 4.1k tets.
 * Contact: the points contact acts on are the mesh's contact surface
   (:func:`~tissue.contact.base.contact_surface`): the collision-surface vertices, embedded
   barycentrically in the volume, or the volume's boundary nodes when the mesh has no collision
