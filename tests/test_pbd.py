@@ -54,6 +54,14 @@ def test_method_and_interface(block: TetMesh) -> None:
         model.node_positions[0, 0] = 1.0  # a read-only view: the state is the model's
 
 
+def test_registry_builds_the_pbd_backend(block: TetMesh) -> None:
+    from tissue.contact import make_contact_model
+
+    model = make_contact_model("pbd", block, PROBE_SHAPE, config=PBDConfig(substeps=4))
+    assert isinstance(model, PBDContact)
+    assert model.config.substeps == 4
+
+
 def test_rest_stays_at_rest(block: TetMesh) -> None:
     model = PBDContact(block, PROBE_SHAPE)
     position, quat = _pose(block, -0.002)  # 2 mm above the top: no contact
