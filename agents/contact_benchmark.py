@@ -1,0 +1,296 @@
+"""``probegym bench contact``: cost and outcome of each contact strategy, per mesh level.
+
+What is measured: the default linear probe face (:class:`tissue.probe.LinearProbeFace`),
+pressing straight down (-z) into the apex of the built-in breast phantom at the paper's
+0.01 m/s (0.2 mm per 0.02 s tissue step), starting 1 mm clear of the skin and going on for
+``steps`` steps after the first step with contact (50 steps: 10 mm beyond first contact).
+Every strategy sees the same probe path. Per method, mode and level one record:
+
+- ``step_ms``: median wall time of one :meth:`ContactModel.step` over the steps in
+  contact [ms] (steps before contact are cheaper and are left out);
+- ``step_ms_max``: the slowest step in contact [ms] (a few slow steps hide in a median);
+- ``penetration_max_m``: the deepest collision-surface point inside the probe over the
+  whole run [m] (LM and prescribed keep it near zero by construction; penalty trades it
+  against its stiffness);
+- ``force_n``: the normal (+z, the pressing axis) force on the probe at the final depth [N];
+- ``status_counts``: how many steps ended with each :class:`tissue.status.StepStatus`;
+- ``lesion1_displacement_m``: how far lesion landmark 1 (under the apex) moved from rest
+  at the final depth [m].
+
+Methods: ``penalty``, ``lm``, ``prescribed`` (always with ``online=True``: the node set
+follows the probe's footprint, as a user without a pre-computed node set would run it) and
+``pbd`` when :mod:`tissue.pbd` can be imported. PBD has no paper/robust mode; it runs once,
+recorded with mode ``"n/a"``.
+
+Targets of issue 3, printed against the measurements: penalty and prescribed in paper mode
+<= 5 ms per step up to 4.1k tets and <= 20 ms (real time at 0.02 s) up to 26k tets; LM <= 2 x
+penalty (same mode) at every level up to 26k tets. Times are wall clock on a shared machine:
+read ratios taken in one run, not absolute numbers across runs.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tissue.contact import make_contact_model
+from tissue.contact.prescribed import PrescribedParams
+from tissue.phantom import PHANTOM_LEVELS, breast_phantom
+from tissue.probe import LinearProbeFace, Probe
+from tissue.simulator import SimulationConfig
+
+DEFAULT_LEVELS = tuple(level for level in PHANTOM_LEVELS if level <= 26220)
+DEFAULT_METHODS = ("penalty", "lm", "prescribed", "pbd")
+DEFAULT_MODES = ("paper", "robust")
+# Probe advance per 0.02 s step at the paper's 0.01 m/s [m].
+STEP_ADVANCE_M = 0.0002
+# The probe starts this far above the apex [m].
+START_CLEARANCE_M = 0.001
+# Steps allowed before contact must have happened (clearance / advance, with margin).
+MAX_APPROACH_STEPS = 20
+# Targets (issue 3) [ms per step] and the tet count up to which the tighter one applies.
+TARGET_FAST_MS = 5.0
+TARGET_FAST_TETS = 4200
+TARGET_REALTIME_MS = 20.0
+TARGET_LM_OVER_PENALTY = 2.0
+# Steps in contact of the untimed warm-up run of each method and mode.
+WARMUP_STEPS = 3
+# The mode PBD is recorded under (it has no paper/robust distinction).
+PBD_MODE = "n/a"
+
+
+def _pbd_available() -> bool:
+    try:
+        import tissue.pbd  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _apex_probe(mesh: Any) -> Probe:
+    """The face, centred over the mesh's plan-view centre, 1 mm above its top, pressing -z."""
+    centre = (mesh.nodes[:, :2].min(axis=0) + mesh.nodes[:, :2].max(axis=0)) / 2
+    top = float(mesh.nodes[:, 2].max())
+    start = np.array([centre[0], centre[1], top + START_CLEARANCE_M])
+    return Probe.looking_along(LinearProbeFace(), start, np.array([0.0, 0.0, -1.0]))
+
+
+def benchmark_one(method: str, mode: str, level: int, steps: int) -> dict[str, Any]:
+    """Press the face ``steps`` steps beyond first contact with one method; the JSON record.
+
+    Args:
+        method: ``penalty``, ``lm``, ``prescribed`` (run online) or ``pbd``.
+        mode: ``paper`` or ``robust`` (ignored for ``pbd``).
+        level: phantom level (tet count of :data:`tissue.phantom.PHANTOM_LEVELS`).
+        steps: probe advances of 0.2 mm after the first step in contact.
+    """
+    mesh = breast_phantom(level)
+    shape = LinearProbeFace()
+    kwargs: dict[str, Any] = {}
+    if method != "pbd":
+        kwargs["config"] = SimulationConfig(mode=mode)
+    if method == "prescribed":
+        kwargs["params"] = PrescribedParams(online=True)
+    model = make_contact_model(method, mesh, shape, **kwargs)
+    start = _apex_probe(mesh)
+    quat = start.quat_wxyz
+    direction = np.array([0.0, 0.0, -1.0])
+    if mesh.landmarks is None:
+        raise ValueError(f"phantom level {level} has no lesion landmarks to track")
+    rest_lesion = mesh.landmarks.rest_positions[0]
+    load_before = os.getloadavg()[0]
+
+    contact_ms: list[float] = []
+    statuses: Counter[str] = Counter()
+    penetration_max = 0.0
+    first_contact_step: int | None = None
+    step = 0
+    result = None
+    while True:
+        step += 1
+        travel = STEP_ADVANCE_M * step
+        result = model.step(start.position_world + travel * direction, quat)
+        statuses[result.status.value] += 1
+        penetration_max = max(penetration_max, result.penetration_max_m)
+        in_contact = result.contact_count > 0 or bool(np.any(result.force_world != 0.0))
+        if first_contact_step is None and in_contact:
+            first_contact_step = step
+        if first_contact_step is not None:
+            contact_ms.append(result.compute_ms)
+            if step - first_contact_step >= steps:
+                break
+        elif step >= MAX_APPROACH_STEPS:
+            break
+    assert result is not None
+
+    lesion = result.landmarks[0]
+    contact_step = first_contact_step if first_contact_step is not None else step
+    return {
+        "method": method,
+        "mode": PBD_MODE if method == "pbd" else mode,
+        "level": level,
+        "tets": mesh.tet_count,
+        "nodes": mesh.node_count,
+        "step_ms": float(np.median(contact_ms)) if contact_ms else float("nan"),
+        "step_ms_max": float(np.max(contact_ms)) if contact_ms else float("nan"),
+        "steps_in_contact": len(contact_ms),
+        "penetration_max_m": penetration_max,
+        "force_n": float(-direction @ result.force_world),
+        "force_world_n": [float(f) for f in result.force_world],
+        "depth_beyond_contact_m": STEP_ADVANCE_M * (step - contact_step),
+        "status_counts": dict(statuses),
+        "lesion1_displacement_m": float(np.linalg.norm(lesion - rest_lesion)),
+        "lesion1_displacement_world_m": [float(d) for d in lesion - rest_lesion],
+        # 1-minute load average before and after: above the core count, times are inflated.
+        "load_average": [load_before, os.getloadavg()[0]],
+        "cpu_count": os.cpu_count(),
+    }
+
+
+def _annotate_targets(records: list[dict[str, Any]]) -> None:
+    """Add each record's target fields (in place): ``target_step_ms``/``meets_target`` for
+    penalty and prescribed in paper mode, ``lm_over_penalty`` for LM records."""
+    penalty_ms = {
+        (r["mode"], r["level"]): r["step_ms"] for r in records if r["method"] == "penalty"
+    }
+    for record in records:
+        if record["method"] in ("penalty", "prescribed") and record["mode"] == "paper":
+            limit = TARGET_FAST_MS if record["tets"] <= TARGET_FAST_TETS else TARGET_REALTIME_MS
+            record["target_step_ms"] = limit
+            record["meets_target"] = bool(record["step_ms"] <= limit)
+        if record["method"] == "lm":
+            reference = penalty_ms.get((record["mode"], record["level"]))
+            if reference:
+                ratio = record["step_ms"] / reference
+                record["lm_over_penalty"] = ratio
+                record["meets_target"] = bool(ratio <= TARGET_LM_OVER_PENALTY)
+
+
+def _write(records: list[dict[str, Any]], json_path: Path) -> None:
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps(records, indent=2))
+
+
+def _pivot(
+    records: list[dict[str, Any]], levels: list[int], key: str, scale: float, fmt: str
+) -> list[str]:
+    rows = []
+    seen: list[tuple[str, str]] = []
+    for record in records:
+        row_key = (record["method"], record["mode"])
+        if row_key not in seen:
+            seen.append(row_key)
+    for method, mode in seen:
+        cells = []
+        for level in levels:
+            match = [
+                r
+                for r in records
+                if r["method"] == method and r["mode"] == mode and r["level"] == level
+            ]
+            cells.append(format(match[0][key] * scale, fmt) if match else "-".rjust(9))
+        rows.append(f"{method:>10} {mode:>6} " + " ".join(cells))
+    return rows
+
+
+def print_tables(records: list[dict[str, Any]], levels: list[int]) -> None:
+    """Print step time, force and penetration per method/mode (rows) and level (columns),
+    then the issue's targets against the measurements."""
+    tets = {r["level"]: r["tets"] for r in records}
+    header = f"{'method':>10} {'mode':>6} " + " ".join(
+        f"{tets.get(level, level):>9}" for level in levels
+    )
+    for title, key, scale, fmt in (
+        ("median step time in contact [ms]", "step_ms", 1.0, "9.2f"),
+        ("slowest step in contact [ms]", "step_ms_max", 1.0, "9.1f"),
+        ("normal force at the final depth [N]", "force_n", 1.0, "9.3f"),
+        ("largest penetration over the run [mm]", "penetration_max_m", 1e3, "9.3f"),
+        ("lesion 1 displacement at the final depth [mm]", "lesion1_displacement_m", 1e3, "9.2f"),
+    ):
+        print(f"\n{title} — columns: tets")
+        print(header)
+        for row in _pivot(records, levels, key, scale, fmt):
+            print(row)
+    print("\nnon-ok steps:")
+    for record in records:
+        bad = {k: v for k, v in record["status_counts"].items() if k != "ok"}
+        if bad:
+            print(f"  {record['method']}/{record['mode']} {record['tets']} tets: {bad}")
+
+    print("\ntargets (issue 3)")
+    for record in records:
+        if "target_step_ms" in record:
+            verdict = "meets" if record["meets_target"] else "MISSES"
+            print(
+                f"  {record['method']:>10} paper {record['tets']:>6} tets: "
+                f"{record['step_ms']:7.2f} ms <= {record['target_step_ms']:.0f} ms? {verdict}"
+            )
+    for record in records:
+        if "lm_over_penalty" in record:
+            verdict = "meets" if record["meets_target"] else "MISSES"
+            print(
+                f"  LM/penalty {record['mode']:>6} {record['tets']:>6} tets: "
+                f"{record['lm_over_penalty']:6.2f} x <= {TARGET_LM_OVER_PENALTY:.0f} x? {verdict}"
+            )
+
+
+def run_contact_benchmark(
+    levels: list[int] | None,
+    methods: list[str] | None,
+    modes: list[str],
+    json_path: Path,
+    steps: int = 50,
+) -> list[dict[str, Any]]:
+    """Benchmark every method x mode x level; print tables; write a JSON list of records.
+
+    Args:
+        levels: phantom levels (tet counts); None: 623 to 26,220.
+        methods: any of ``penalty``, ``lm``, ``prescribed``, ``pbd``; None: all four (PBD
+            skipped, with a note, when :mod:`tissue.pbd` is missing).
+        modes: integration modes, ``paper`` and/or ``robust``.
+        json_path: where the records go; rewritten after every record.
+        steps: probe advances of 0.2 mm after first contact (50: a 10 mm press).
+
+    Returns:
+        The records (see the module docstring for the fields).
+    """
+    levels = list(levels or DEFAULT_LEVELS)
+    methods = list(methods or DEFAULT_METHODS)
+    modes = list(modes or DEFAULT_MODES)
+    if "pbd" in methods and not _pbd_available():
+        print("note: tissue.pbd is not importable here; skipping the pbd method")
+        methods = [m for m in methods if m != "pbd"]
+    print(
+        f"probegym bench contact — face into the apex at 0.01 m/s, {steps} steps "
+        f"({steps * STEP_ADVANCE_M * 1e3:.0f} mm) beyond first contact "
+        f"({platform.processor() or platform.machine()})"
+    )
+    # Compile (or load from numba's cache) every kernel the runs use before timing anything.
+    for method in methods:
+        for mode in [PBD_MODE] if method == "pbd" else modes:
+            benchmark_one(method, mode, min(PHANTOM_LEVELS), WARMUP_STEPS)
+    records: list[dict[str, Any]] = []
+    for level in levels:
+        for method in methods:
+            for mode in [PBD_MODE] if method == "pbd" else modes:
+                record = benchmark_one(method, mode, level, steps)
+                records.append(record)
+                print(
+                    f"  {record['tets']:>6} tets {method:>10}/{record['mode']:<6} "
+                    f"{record['step_ms']:8.2f} ms/step (max {record['step_ms_max']:.1f}), "
+                    f"F {record['force_n']:.3f} N, pen "
+                    f"{record['penetration_max_m'] * 1e3:.3f} mm, lesion 1 "
+                    f"{record['lesion1_displacement_m'] * 1e3:.2f} mm, {record['status_counts']}",
+                    flush=True,
+                )
+                _annotate_targets(records)
+                _write(records, json_path)  # keep what is measured so far
+    print_tables(records, levels)
+    print(f"written: {json_path}")
+    return records
