@@ -150,6 +150,24 @@ def benchmark_one(method: str, mode: str, level: int, steps: int) -> dict[str, A
         # 1-minute load average before and after: above the core count, times are inflated.
         "load_average": [load_before, os.getloadavg()[0]],
         "cpu_count": os.cpu_count(),
+        "threading": threading_environment(),
+    }
+
+
+def threading_environment() -> dict[str, Any]:
+    """How our numba kernels were threaded: on a shared 2-core machine the OpenMP layer's
+    waiting policy can change parallel kernels' times by orders of magnitude."""
+    import numba
+
+    try:
+        layer = numba.threading_layer()
+    except ValueError:  # no parallel kernel has run yet
+        layer = None
+    return {
+        "numba_threading_layer": layer,
+        "numba_num_threads": numba.config.NUMBA_NUM_THREADS,
+        "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"),
+        "KMP_BLOCKTIME": os.environ.get("KMP_BLOCKTIME"),
     }
 
 
