@@ -414,7 +414,7 @@ def threading_environment() -> dict[str, Any]:
         layer = None
     return {
         "numba_threading_layer": layer,
-        "numba_num_threads": numba.config.NUMBA_NUM_THREADS,
+        "numba_num_threads": numba.get_num_threads(),
         "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"),
         "KMP_BLOCKTIME": os.environ.get("KMP_BLOCKTIME"),
     }
