@@ -27,6 +27,29 @@ def _levels(value: str) -> list[int]:
     return [_level(part) for part in value.split(",") if part.strip()]
 
 
+def _floats(value: str) -> list[float]:
+    try:
+        return [float(part) for part in value.split(",") if part.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated numbers; got {value!r}"
+        ) from None
+
+
+def _pair(value: str) -> tuple[float, float]:
+    numbers = _floats(value)
+    if len(numbers) != 2:
+        raise argparse.ArgumentTypeError(f"expected X,Y; got {value!r}")
+    return numbers[0], numbers[1]
+
+
+def _triple(value: str) -> tuple[float, float, float]:
+    numbers = _floats(value)
+    if len(numbers) != 3:
+        raise argparse.ArgumentTypeError(f"expected DX,DY,DZ; got {value!r}")
+    return numbers[0], numbers[1], numbers[2]
+
+
 def _build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="probegym",
@@ -44,6 +67,35 @@ def _build_parser() -> argparse.ArgumentParser:
     mesh = commands.add_parser("mesh", help="write a phantom mesh level to a file")
     mesh.add_argument("--level", type=_level, required=True, help="tet-count level, e.g. 4126")
     mesh.add_argument("--out", type=Path, required=True, help="output file; format by suffix")
+
+    compress = commands.add_parser(
+        "compress", help="one scripted probe compression, recorded as JSON"
+    )
+    tissue_source = compress.add_mutually_exclusive_group()
+    tissue_source.add_argument(
+        "--mesh", default="4126", help="phantom level (tet count) or a tet-mesh file meshio reads"
+    )
+    tissue_source.add_argument("--scene", type=Path, help="a directory in the published layout")
+    compress.add_argument("--fixed-plane", help="with --mesh FILE: fix nodes on e.g. z=min")
+    compress.add_argument("--fixed-nodes", type=Path, help="with --mesh FILE: file of node indices")
+    compress.add_argument("--lesion", type=int, default=1, help="with --scene: tumour number")
+    compress.add_argument("--young", type=float, help="tissue Young's modulus [Pa] (default 2850)")
+    compress.add_argument("--poisson", type=float, help="tissue Poisson ratio (default 0.49)")
+    compress.add_argument(
+        "--probe",
+        default=None,
+        help="face | sphere:R | box:LX,LY,LZ | cylinder:R,H | FILE (metres; default face)",
+    )
+    compress.add_argument("--at", type=_pair, help="X,Y [m]: the surface point to press")
+    compress.add_argument("--direction", type=_triple, default=(0.0, 0.0, -1.0), help="DX,DY,DZ")
+    compress.add_argument(
+        "--depths", type=_floats, default=None, help="D1,D2,... [m] past first contact"
+    )
+    compress.add_argument("--speed", type=float, default=0.01, help="probe speed [m/s]")
+    compress.add_argument("--method", default="lm", help="penalty | lm | prescribed | pbd")
+    compress.add_argument("--mode", default="robust", help="paper | robust")
+    compress.add_argument("--online", action="store_true", help="prescribed: update contact set")
+    compress.add_argument("--json", type=Path, default=Path("compress.json"))
 
     bench = commands.add_parser("bench", help="benchmarks that print a table and write JSON")
     bench_kinds = bench.add_subparsers(dest="bench", required=True, metavar="BENCHMARK")
@@ -68,6 +120,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             from agents.tissue_demo import run_demo
 
             return run_demo(level=args.level, depth_m=args.depth_mm * 1e-3, mode=args.mode)
+        if args.command == "compress":
+            from agents.compress_command import run_compress_command
+
+            return run_compress_command(args)
         if args.command == "mesh":
             return _mesh(args.level, args.out)
         if args.command == "bench" and args.bench == "tissue":

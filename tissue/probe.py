@@ -50,6 +50,8 @@ FACE_WIDTH_M = 0.0132
 # the half-width (a least-squares scan of both radii against the STL picked these).
 FACE_EDGE_RADIUS_M = 0.00135
 FACE_CORNER_RADIUS_M = 0.0066
+# Depth of the probe's body behind the face used for contact [m] (see linear_probe).
+PROBE_BODY_DEPTH_M = 0.03
 
 # Any probe dimension above this [m] was almost certainly given in millimetres.
 _LARGEST_PLAUSIBLE_SIZE_M = 1.0
@@ -352,6 +354,17 @@ class LinearProbeFace(_RoundedSlab):
             corner_radius_m,
             name=f"face:{size[0]:g}x{size[1]:g}x{size[2]:g}",
         )
+
+
+def linear_probe() -> LinearProbeFace:
+    """The default probe for contact: the published face backed by the probe's housing.
+
+    The published collision STL is only the 2.7 mm thick face plate. Under deep
+    compressions tissue bulging around a plate that thin can reach its back and be pushed
+    through it (the closest surface is then the back), so contact uses the same face
+    extended PROBE_BODY_DEPTH_M behind it, as a real probe's body is.
+    """
+    return LinearProbeFace(thickness_m=PROBE_BODY_DEPTH_M)
 
 
 class BoxProbe(_RoundedSlab):
@@ -743,7 +756,7 @@ def parse_probe_spec(spec: str) -> ProbeShape:
     kind, colon, body = text.partition(":")
     kind = kind.strip().lower()
     if kind == "face" and not colon:
-        return LinearProbeFace()
+        return linear_probe()
     if kind in ("sphere", "box", "cylinder") and colon:
         if kind == "sphere":
             return SphereProbe(*_parse_numbers(spec, body, 1))

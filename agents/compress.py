@@ -1,0 +1,232 @@
+"""``probegym compress``: one scripted probe compression, recorded step by step, as JSON.
+
+The probe starts just clear of the surface, moves along the pressing direction at a
+constant speed, and holds at each requested depth (measured from first contact) until the
+tissue settles; one record per step and one per depth are written.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tissue.contact import ContactMethod, ContactModel, make_contact_model
+from tissue.contact.base import ContactResult
+from tissue.contact.placement import first_contact_pose
+from tissue.contact.prescribed import PrescribedParams
+from tissue.errors import ConfigError, TissueInputError
+from tissue.material import NeoHookean, TissueMaterials
+from tissue.mesh import TetMesh
+from tissue.probe import Probe, ProbeShape
+from tissue.simulator import SimulationConfig
+from tissue.status import StepStatus, worst
+
+# The probe starts this far before first contact [m].
+START_CLEARANCE_M = 0.001
+# Settling at a depth ends when no node moves faster than this [m/s] ...
+SETTLED_SPEED_M_S = 1e-4
+# ... or after this many steps.
+MAX_SETTLE_STEPS = 50
+
+
+@dataclass(frozen=True)
+class Waypoint:
+    """A probe pose to reach, and whether to settle and record a level there."""
+
+    position: NDArray[np.float64]
+    quat_wxyz: NDArray[np.float64]
+    depth_m: float | None  # None: pass through without recording
+
+
+def straight_path(
+    contact_position: NDArray[np.float64],
+    quat_wxyz: NDArray[np.float64],
+    direction: NDArray[np.float64],
+    depths_m: list[float],
+) -> tuple[Waypoint, list[Waypoint]]:
+    """Start pose (just clear of contact) and one waypoint per depth along ``direction``."""
+    _check_depths(depths_m)
+    direction = direction / np.linalg.norm(direction)
+    start = Waypoint(contact_position - START_CLEARANCE_M * direction, quat_wxyz, None)
+    stops = [Waypoint(contact_position + d * direction, quat_wxyz, d) for d in depths_m]
+    return start, stops
+
+
+def _check_depths(depths_m: list[float]) -> None:
+    if not depths_m:
+        raise ConfigError("--depths needs at least one depth in metres, e.g. 0.01,0.02")
+    values = np.asarray(depths_m, dtype=np.float64)
+    if not np.all(np.isfinite(values)) or np.any(values <= 0):
+        raise ConfigError(
+            f"depths are distances past first contact and must be > 0 m; got {depths_m} "
+            "(a path with no motion)"
+        )
+    if np.any(np.diff(values) <= 0):
+        raise ConfigError(f"--depths must increase; got {depths_m}")
+    if values.max() > 0.1:
+        raise ConfigError(
+            f"depths are in metres; {values.max():g} m is deeper than any phantom "
+            "(did you mean millimetres? 20 mm is 0.02)"
+        )
+
+
+def run_compression(
+    model: ContactModel,
+    start: Waypoint,
+    stops: list[Waypoint],
+    speed_m_s: float,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Drive ``model`` through the waypoints; returns the JSON-ready record."""
+    if not (np.isfinite(speed_m_s) and speed_m_s > 0):
+        raise ConfigError(f"--speed must be a positive number of m/s; got {speed_m_s!r}")
+    dt = model.dt
+    model.reset()
+    model.probe.set_pose(start.position, start.quat_wxyz)
+    if model.penetration_max_m() > 0.0:
+        raise TissueInputError(
+            "the probe starts inside the tissue (penetration "
+            f"{model.penetration_max_m() * 1e3:.2f} mm); start it clear of the surface"
+        )
+    steps: list[dict[str, Any]] = []
+    levels: list[dict[str, Any]] = []
+    position, quat = start.position.copy(), start.quat_wxyz.copy()
+    level_status = StepStatus.OK
+    for stop in stops:
+        distance = float(np.linalg.norm(stop.position - position))
+        count = max(1, math.ceil(distance / (speed_m_s * dt) - 1e-9))
+        begin, begin_quat = position, quat
+        for i in range(1, count + 1):
+            fraction = i / count
+            pose = begin + fraction * (stop.position - begin)
+            pose_quat = _slerp(begin_quat, stop.quat_wxyz, fraction)
+            result = model.step(pose, pose_quat)
+            steps.append(_step_record(result, pose))
+            level_status = worst(level_status, result.status)
+        position, quat = stop.position.copy(), stop.quat_wxyz.copy()
+        if stop.depth_m is None:
+            continue
+        for _ in range(MAX_SETTLE_STEPS):
+            previous = model.node_positions.copy()
+            result = model.step(position, quat)
+            steps.append(_step_record(result, position))
+            level_status = worst(level_status, result.status)
+            speed = float(np.max(np.abs(model.node_positions - previous))) / dt
+            if speed < SETTLED_SPEED_M_S or result.status.is_failure:
+                break
+        levels.append(_level_record(result, stop.depth_m, model, level_status))
+        if progress:
+            print(
+                f"depth {stop.depth_m * 1e3:6.2f} mm: force {levels[-1]['force_normal_n']:8.4f} N, "
+                f"penetration {result.penetration_max_m * 1e3:6.3f} mm, {level_status.value}",
+                flush=True,
+            )
+        level_status = StepStatus.OK
+    return {"steps": steps, "levels": levels}
+
+
+def _step_record(result: ContactResult, position: NDArray[np.float64]) -> dict[str, Any]:
+    return {
+        "t": result.time_s,
+        "probe_pos": position.tolist(),
+        "force": result.force_world.tolist(),
+        "torque": result.torque_world.tolist(),
+        "penetration_max_m": result.penetration_max_m,
+        "landmarks": result.landmarks.tolist(),
+        "status": result.status.value,
+        "compute_ms": result.compute_ms,
+    }
+
+
+def _level_record(
+    result: ContactResult, depth: float, model: ContactModel, status: StepStatus
+) -> dict[str, Any]:
+    pressing = model.probe.pressing_direction_world()
+    return {
+        "depth_m": depth,
+        "force": result.force_world.tolist(),
+        # The tissue pushes the probe back: report the normal force as a positive number.
+        "force_normal_n": float(-result.force_world @ pressing),
+        "penetration_max_m": result.penetration_max_m,
+        "landmarks": result.landmarks.tolist(),
+        "status": status.value,
+    }
+
+
+def _slerp(a: NDArray[np.float64], b: NDArray[np.float64], t: float) -> NDArray[np.float64]:
+    dot = float(a @ b)
+    if dot < 0:
+        b, dot = -b, -dot
+    if dot > 0.9995:
+        out = a + t * (b - a)
+        return out / np.linalg.norm(out)
+    theta = math.acos(dot)
+    return (math.sin((1 - t) * theta) * a + math.sin(t * theta) * b) / math.sin(theta)
+
+
+def build_model(
+    mesh: TetMesh,
+    shape: ProbeShape,
+    method: str,
+    mode: str,
+    young_pa: float | None,
+    poisson: float | None,
+    online: bool,
+    node_set: tuple[int, ...] | None = None,
+) -> ContactModel:
+    """The contact model for a compression, with the material overrides applied."""
+    method_enum = ContactMethod.parse(method)
+    if online and method_enum is not ContactMethod.PRESCRIBED:
+        raise ConfigError(f"--online applies to --method prescribed only; got --method {method}")
+    base = NeoHookean()
+    tissue = NeoHookean(
+        young_pa if young_pa is not None else base.young_pa,
+        poisson if poisson is not None else base.poisson,
+        base.density_kg_m3,
+    )
+    materials = TissueMaterials(tissue=tissue)
+    if method_enum is ContactMethod.PBD:
+        return make_contact_model(method_enum, mesh, shape, materials=materials)
+    kwargs: dict[str, Any] = {"materials": materials, "config": SimulationConfig(mode=mode)}
+    if method_enum is ContactMethod.PRESCRIBED:
+        kwargs["params"] = PrescribedParams(online=online, node_set=node_set)
+    return make_contact_model(method_enum, mesh, shape, **kwargs)
+
+
+def plan_straight(
+    model: ContactModel,
+    at_xy: tuple[float, float] | None,
+    direction: NDArray[np.float64],
+    depths_m: list[float],
+) -> tuple[Waypoint, list[Waypoint]]:
+    """A straight press at ``at_xy`` (default: the centre of the mesh's top in plan view)."""
+    nodes = model.mesh.nodes
+    if at_xy is None:
+        at_xy = tuple((nodes[:, :2].min(axis=0) + nodes[:, :2].max(axis=0)) / 2)  # type: ignore[assignment]
+    assert at_xy is not None
+    target = np.array([at_xy[0], at_xy[1], nodes[:, 2].mean()])
+    position, quat = first_contact_pose(model.surface, nodes, model.probe.shape, target, direction)
+    return straight_path(position, quat, direction, depths_m)
+
+
+def plan_scene(poses: NDArray[np.float64]) -> tuple[Waypoint, list[Waypoint]]:
+    """The published scene's path: Transform0 (at rest) then Transform1..4, each a level."""
+    start_position, start_quat = Probe.pose_from_matrix(poses[0])
+    stops = []
+    for transform in poses[1:]:
+        position, quat = Probe.pose_from_matrix(transform)
+        pressing = transform[:3, :3] @ np.array([0.0, 1.0, 0.0])
+        depth = float((position - start_position) @ pressing)
+        stops.append(Waypoint(position, quat, depth))
+    return Waypoint(start_position, start_quat, None), stops
+
+
+def write_json(record: dict[str, Any], path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(record))

@@ -1,0 +1,105 @@
+"""Argument handling of ``probegym compress`` (the work is in :mod:`agents.compress`)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from agents.compress import build_model, plan_scene, plan_straight, run_compression, write_json
+from tissue.errors import ConfigError
+from tissue.mesh import TetMesh
+from tissue.probe import ProbeShape, parse_probe_spec
+
+# Synthetic default depths past first contact [m] (the study's: 10, 20, 25, 30 mm).
+DEFAULT_DEPTHS_M = [0.01, 0.02, 0.025, 0.03]
+
+
+def _load_mesh(args: argparse.Namespace) -> TetMesh:
+    mesh_arg = str(args.mesh)
+    if Path(mesh_arg).suffix:
+        from tissue.mesh_io import load_tet_mesh
+
+        if args.fixed_plane is None and args.fixed_nodes is None:
+            raise ConfigError(
+                f"--mesh {mesh_arg} needs its fixed nodes: --fixed-plane AXIS=min|max or "
+                "--fixed-nodes FILE"
+            )
+        return load_tet_mesh(
+            mesh_arg, fixed_plane=args.fixed_plane, fixed_nodes_file=args.fixed_nodes
+        )
+    if args.fixed_plane is not None or args.fixed_nodes is not None:
+        raise ConfigError("--fixed-plane and --fixed-nodes apply to --mesh FILE only")
+    from tissue.phantom import breast_phantom, parse_level
+
+    return breast_phantom(parse_level(mesh_arg))
+
+
+def spring_nodes_to_volume(mesh: TetMesh, spring_vertices: np.ndarray) -> tuple[int, ...]:
+    """The volume boundary nodes nearest the published spring vertices (collision surface).
+
+    The paper attaches the probe to collision-surface vertices; our prescribed displacement
+    acts on volume nodes, so each vertex is replaced by the nearest boundary node.
+    """
+    from scipy.spatial import cKDTree
+
+    from tissue.mesh import boundary_faces
+
+    assert mesh.collision_surface is not None
+    boundary = np.unique(boundary_faces(mesh.tets))
+    points = mesh.collision_surface.rest_vertices[np.asarray(spring_vertices)]
+    _, nearest = cKDTree(mesh.nodes[boundary]).query(points)
+    return tuple(int(n) for n in np.unique(boundary[nearest]))
+
+
+def run_compress_command(args: argparse.Namespace) -> int:
+    """Validate the arguments, run the compression, write the JSON; returns the exit code."""
+    given_nodes = None
+    if args.scene is not None:
+        from tissue.paper_scene import load_paper_scene
+
+        scene = load_paper_scene(args.scene)
+        if args.lesion not in scene.probe_poses:
+            raise ConfigError(
+                f"--lesion {args.lesion} is not in {args.scene}; choose one of "
+                f"{sorted(scene.probe_poses)}"
+            )
+        mesh = scene.mesh
+        if not args.online:  # the paper's a-priori contact set for this lesion
+            given_nodes = spring_nodes_to_volume(mesh, scene.spring_nodes[args.lesion])
+    else:
+        mesh = _load_mesh(args)
+    # The scene's own collision STL is the same face as "face" but only 2.7 mm thick: the
+    # default probe keeps that face and adds the probe's body behind it (see linear_probe).
+    shape: ProbeShape = parse_probe_spec(args.probe or "face")
+    model = build_model(
+        mesh, shape, args.method, args.mode, args.young, args.poisson, args.online, given_nodes
+    )
+    if args.scene is not None:
+        if args.depths is not None or args.at is not None:
+            raise ConfigError(
+                "with --scene the scene's probe poses are the path; drop --at/--depths"
+            )
+        start, stops = plan_scene(scene.probe_poses[args.lesion])
+    else:
+        depths = args.depths if args.depths is not None else DEFAULT_DEPTHS_M
+        direction = np.asarray(args.direction, dtype=np.float64)
+        start, stops = plan_straight(model, args.at, direction, depths)
+    print(
+        f"compress: {mesh.name} ({mesh.tet_count} tets), probe {shape.name}, "
+        f"method {args.method}, mode {args.mode}, {len(stops)} levels"
+    )
+    record = run_compression(model, start, stops, args.speed, progress=True)
+    record["config"] = {
+        "mesh": mesh.name,
+        "tets": mesh.tet_count,
+        "method": args.method,
+        "mode": args.mode,
+        "probe": shape.name,
+        "speed_m_s": args.speed,
+        "online": bool(args.online),
+    }
+    write_json(record, args.json)
+    print(f"written: {args.json} ({len(record['steps'])} steps)")
+    return 0
