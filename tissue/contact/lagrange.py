@@ -194,20 +194,25 @@ class LagrangeContact(FEContactModel):
         except Exception:  # noqa: BLE001 - a failed factorisation is a status
             return StepStatus.SOLVER_FAILED, np.zeros((0, 3)), np.zeros((0, 3)), {}
         free_dv = np.where(linear.system.constrained, linear.system.values, free_dv)
-        free_x = x + h * (v + free_dv.reshape(-1, 3))
+        # Dynamic steps solve for dv (x' = x + h (v + dv), the impulse per step is h lambda);
+        # quasi-static ones for dx directly (x' = x + dx, lambda itself balances).
+        quasi = integrator.config.quasi_static
+        free_x = x + free_dv.reshape(-1, 3) if quasi else x + h * (v + free_dv.reshape(-1, 3))
+        impulse_per_force = 1.0 if quasi else h
         contacts = detect_contacts(self.surface, free_x, self.probe, self.params.alarm_distance_m)
         sweeps, change = 0, 0.0
         forces = np.zeros(0)
         dv = free_dv
         if contacts.count:
             rows = constraint_rows(self.surface, contacts, x.size, linear.system.constrained)
-            # delta = delta_free + h H dv_corr, dv_corr = A^-1 H^T (h lambda)  =>  scale h^2.
+            # delta = delta_free + h H dv_corr, dv_corr = A^-1 H^T (h lambda)  =>  scale h^2
+            # (quasi-static: delta = delta_free + H A^-1 H^T lambda, scale 1).
             forces, columns, sweeps, change = self._solve_lcp(
-                factorization, rows, contacts.distance, h * h, contacts
+                factorization, rows, contacts.distance, impulse_per_force**2, contacts
             )
-            dv = free_dv + columns @ (h * forces)
+            dv = free_dv + columns @ (impulse_per_force * forces)
             # The multipliers act as extra right-hand side: include them in the reactions.
-            linear.rhs[:] = linear.rhs + rows.T @ (h * forces)
+            linear.rhs[:] = linear.rhs + rows.T @ (impulse_per_force * forces)
         report = _report(indefinite)
         outcome = integrator.paper_finish(x, v, h, linear, dv, report)
         status = sim.commit(outcome, h, start).status
