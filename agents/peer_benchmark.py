@@ -43,7 +43,10 @@ sank about 2 mm into the 4.1k-tet flex; the ``-hard`` variant uses (0.99, 0.999,
 
 Speed: wall time of the steps only (our ``ContactModel.step``; MuJoCo's ``mj_step``), summed
 over the run and divided by the simulated time: milliseconds of computation per simulated
-second. ``ratio`` is MuJoCo's over ours (> 1: ours is faster). Targets of issue 3: ratio >= 3
+second. ``ratio`` is MuJoCo's over ours (> 1: ours is faster). The ``*_steady`` fields leave
+the first step out on both sides: our first step carries one-time lazy setup (about 0.3 s),
+which over a 1 s press dominates the small levels; MuJoCo's one-time cost is its compile
+(``compile_s``), not counted in either. Targets of issue 3: ratio >= 3
 in paper mode, >= 2 in robust mode. Times are wall clock on a shared machine; compare the
 ratios taken in one run.
 """
@@ -199,7 +202,9 @@ def run_mujoco(mesh: TetMesh, settings: MujocoSettings, sim_seconds: float) -> d
     record: dict[str, Any] = {"settings": asdict(settings), "mujoco_version": mujoco.__version__}
     face = probe_start_position(mesh)
     try:
+        start = time.perf_counter()
         model = mujoco.MjModel.from_xml_string(flex_mjcf(mesh, settings, face))
+        record["compile_s"] = time.perf_counter() - start
     except ValueError as error:
         record["status"] = f"compile_error: {error}"
         return record
@@ -248,8 +253,7 @@ def run_mujoco(mesh: TetMesh, settings: MujocoSettings, sim_seconds: float) -> d
     record.update(
         status=status,
         completed_sim_s=completed,
-        ms_per_sim_s=1e3 * sum(samples) / completed,
-        step_ms=1e3 * float(np.median(samples)),
+        **_timing(samples, settings.timestep_s),
         solver_iterations_median=float(np.median(iterations)),
         solver_iterations_at_cap=int(sum(i >= settings.iterations for i in iterations)),
         warnings=warnings,
@@ -342,8 +346,7 @@ def run_ours(
         "method": method,
         "mode": mode,
         "completed_sim_s": completed,
-        "ms_per_sim_s": 1e3 * sum(samples) / completed,
-        "step_ms": 1e3 * float(np.median(samples)),
+        **_timing(samples, TISSUE_DT_S),
         "status_counts": dict(statuses),
         "force_n": float(result.force_world[2]),
         "penetration_max_m": float(result.penetration_max_m),
@@ -387,6 +390,10 @@ def benchmark_level(level: int, sim_seconds: float) -> dict[str, Any]:
     headline = {run["mode"]: run for run in ours if run["method"] == OURS_METHODS[0]}
     primary = mujoco_runs[0]
     mujoco_ms = primary.get("ms_per_sim_s", math.nan)
+    mujoco_steady = primary.get("ms_per_sim_s_steady", math.nan)
+    for run in ours:
+        run["ratio"] = mujoco_ms / run["ms_per_sim_s"]
+        run["ratio_steady"] = mujoco_steady / run["ms_per_sim_s_steady"]
     return {
         "level": level,
         "tets": mesh.tet_count,
@@ -396,7 +403,12 @@ def benchmark_level(level: int, sim_seconds: float) -> dict[str, Any]:
         "ours_method": OURS_METHODS[0],
         "ours_ms_per_sim_s": {mode: headline[mode]["ms_per_sim_s"] for mode in OURS_MODES},
         "mujoco_ms_per_sim_s": mujoco_ms,
-        "ratio": {mode: mujoco_ms / headline[mode]["ms_per_sim_s"] for mode in OURS_MODES},
+        "ratio": {mode: headline[mode]["ratio"] for mode in OURS_MODES},
+        "ours_ms_per_sim_s_steady": {
+            mode: headline[mode]["ms_per_sim_s_steady"] for mode in OURS_MODES
+        },
+        "mujoco_ms_per_sim_s_steady": mujoco_steady,
+        "ratio_steady": {mode: headline[mode]["ratio_steady"] for mode in OURS_MODES},
         "ours_lesion_error_m": {mode: headline[mode]["lesion_error_m"] for mode in OURS_MODES},
         "mujoco_lesion_error_m": primary.get("lesion_error_m", math.nan),
         "mujoco_status": primary["status"],
@@ -432,6 +444,22 @@ def threading_environment() -> dict[str, Any]:
     }
 
 
+def _timing(samples: list[float], dt_s: float) -> dict[str, float]:
+    """Per-simulated-second costs of a run from its step wall times [s].
+
+    ``ms_per_sim_s`` counts every step; ``ms_per_sim_s_steady`` leaves out the first step,
+    which on our side carries one-time lazy setup (about 0.3 s even on the 622-tet level;
+    MuJoCo's one-time cost is its compile, reported apart as ``compile_s``).
+    """
+    steady = samples[1:] or samples
+    return {
+        "ms_per_sim_s": 1e3 * sum(samples) / (len(samples) * dt_s),
+        "ms_per_sim_s_steady": 1e3 * sum(steady) / (len(steady) * dt_s),
+        "first_step_ms": 1e3 * samples[0],
+        "step_ms": 1e3 * float(np.median(samples)),
+    }
+
+
 def _finite_or_null(value: Any) -> Any:
     """The value with every non-finite float replaced by None (strict JSON)."""
     if isinstance(value, float):
@@ -448,59 +476,79 @@ def _mm(value: float) -> str:
 
 
 def print_tables(records: list[dict[str, Any]]) -> None:
-    """The headline table, then every run of both sides per level."""
+    """The headline table, then every run of both sides per level, then the targets."""
     print(
-        f"\n{'tets':>6} {'ours paper':>11} {'ours robust':>12} {'MuJoCo':>9} "
-        f"{'ratio p':>8} {'ratio r':>8} {'err p mm':>9} {'err r mm':>9} {'MJ err mm':>9} "
-        f"{'MJ status':>10}"
+        f"\nheadline: ours = {OURS_METHODS[0]}, MuJoCo = {MUJOCO_VARIANTS[0].name}; "
+        "ms of computation per simulated s, all steps (steady: without the first step)"
     )
-    print(f"{'':>6} {'[ms per simulated s]':^34}")
+    print(
+        f"{'tets':>6} {'ours paper':>15} {'ours robust':>15} {'MuJoCo':>13} "
+        f"{'ratio paper':>13} {'ratio robust':>13} {'err p mm':>9} {'err r mm':>9} "
+        f"{'MJ err mm':>9}  MJ status"
+    )
     for r in records:
-        ours, ratio, err = r["ours_ms_per_sim_s"], r["ratio"], r["ours_lesion_error_m"]
+        ours, steady = r["ours_ms_per_sim_s"], r["ours_ms_per_sim_s_steady"]
+        ratio, ratio_steady = r["ratio"], r["ratio_steady"]
+        err = r["ours_lesion_error_m"]
         print(
-            f"{r['tets']:>6} {ours['paper']:>11.0f} {ours['robust']:>12.0f} "
-            f"{r['mujoco_ms_per_sim_s']:>9.0f} {ratio['paper']:>8.2f} {ratio['robust']:>8.2f} "
+            f"{r['tets']:>6} {ours['paper']:>7.0f} ({steady['paper']:>5.0f}) "
+            f"{ours['robust']:>7.0f} ({steady['robust']:>5.0f}) "
+            f"{r['mujoco_ms_per_sim_s']:>6.0f} ({r['mujoco_ms_per_sim_s_steady']:>4.0f}) "
+            f"{ratio['paper']:>5.2f} ({ratio_steady['paper']:>5.2f}) "
+            f"{ratio['robust']:>5.2f} ({ratio_steady['robust']:>5.2f}) "
             f"{_mm(err['paper']):>9} {_mm(err['robust']):>9} "
-            f"{_mm(r['mujoco_lesion_error_m']):>9} {r['mujoco_status'][:10]:>10}"
+            f"{_mm(r['mujoco_lesion_error_m']):>9}  {r['mujoco_status']}"
         )
-    print("\nall runs (lesion 1 error against the quasi-static LM reference)")
     print(
-        f"{'tets':>6} {'side':>26} {'ms/sim s':>9} {'ms/step':>8} {'err mm':>8} "
-        f"{'F_z N':>7} {'pen mm':>7}  status (MuJoCo: error against our solver with its "
-        "own uniform material in brackets)"
+        "\nall runs: lesion 1 error against the quasi-static LM reference (MuJoCo: in brackets,"
+        " against our solver with MuJoCo's own uniform material); ratio = MuJoCo "
+        f"{MUJOCO_VARIANTS[0].name} / this run, all steps (steady)"
+    )
+    print(
+        f"{'tets':>6} {'side':>30} {'ms/sim s':>9} {'steady':>7} {'1st ms':>7} {'ms/step':>8} "
+        f"{'ratio':>13} {'err mm':>8} {'F_z N':>7} {'pen mm':>7}  status"
     )
     for r in records:
         print(
-            f"{r['tets']:>6} {'reference (quasi-static)':>26} {'':>9} {'':>8} {'0':>8} "
-            f"{r['reference']['force_n']:>7.3f} {'':>7}  {r['reference']['status_counts']} "
+            f"{r['tets']:>6} {'reference (quasi-static LM)':>30} {'':>9} {'':>7} {'':>7} "
+            f"{'':>8} {'':>13} {'0':>8} {r['reference']['force_n']:>7.3f} {'':>7}  "
+            f"{r['reference']['status_counts']} "
             f"(lesion 1 moved {r['reference_lesion1_displacement_m'] * 1e3:.2f} mm)"
         )
         for run in r["ours"]:
             print(
-                f"{r['tets']:>6} {'ours ' + run['method'] + '/' + run['mode']:>26} "
-                f"{run['ms_per_sim_s']:>9.0f} {run['step_ms']:>8.1f} "
+                f"{r['tets']:>6} {'ours ' + run['method'] + '/' + run['mode']:>30} "
+                f"{run['ms_per_sim_s']:>9.0f} {run['ms_per_sim_s_steady']:>7.0f} "
+                f"{run['first_step_ms']:>7.0f} {run['step_ms']:>8.1f} "
+                f"{run['ratio']:>5.2f} ({run['ratio_steady']:>5.2f}) "
                 f"{_mm(run['lesion_error_m']):>8} {run['force_n']:>7.3f} "
                 f"{run['penetration_max_m'] * 1e3:>7.3f}  {run['status_counts']}"
             )
         for run in r["mujoco"]:
             name = "MuJoCo " + run["settings"]["name"]
             if "ms_per_sim_s" not in run:
-                print(f"{r['tets']:>6} {name:>26}  {run['status']}")
+                print(f"{r['tets']:>6} {name:>30}  {run['status']}")
                 continue
             print(
-                f"{r['tets']:>6} {name:>26} {run['ms_per_sim_s']:>9.0f} {run['step_ms']:>8.1f} "
+                f"{r['tets']:>6} {name:>30} {run['ms_per_sim_s']:>9.0f} "
+                f"{run['ms_per_sim_s_steady']:>7.0f} {run['first_step_ms']:>7.0f} "
+                f"{run['step_ms']:>8.1f} {'':>13} "
                 f"{_mm(run.get('lesion_error_m', math.nan)):>8} "
                 f"{run.get('force_n', math.nan):>7.3f} {run['penetration_max_m'] * 1e3:>7.3f}  "
                 f"[{_mm(run.get('lesion_error_matched_material_m', math.nan)).strip()} mm] "
-                f"{run['status']}; iters median {run['solver_iterations_median']:.0f}, "
-                f"at cap {run['solver_iterations_at_cap']}, warnings {run['warnings']}"
+                f"{run['status']}; compile {run['compile_s']:.2f} s, solver iterations "
+                f"median {run['solver_iterations_median']:.0f} (at cap "
+                f"{run['solver_iterations_at_cap']}), warnings {run['warnings']}"
             )
     print("\ntargets (issue 3): MuJoCo / ours >= 3 in paper mode, >= 2 in robust mode")
     for r in records:
         for mode, needed in (("paper", 3.0), ("robust", 2.0)):
-            value = r["ratio"][mode]
+            value, steady = r["ratio"][mode], r["ratio_steady"][mode]
             verdict = "meets" if value >= needed else "MISSES"
-            print(f"  {r['tets']:>6} tets {mode:>6}: {value:6.2f} x >= {needed:.0f} x? {verdict}")
+            print(
+                f"  {r['tets']:>6} tets {mode:>6}: {value:6.2f} x (steady {steady:.2f} x) "
+                f">= {needed:.0f} x? {verdict}"
+            )
 
 
 def run_peer_benchmark(
