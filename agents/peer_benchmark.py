@@ -199,6 +199,25 @@ def run_mujoco(mesh: TetMesh, settings: MujocoSettings, sim_seconds: float) -> d
     """
     import mujoco
 
+    # MuJoCo's default warning handler prints and appends to MUJOCO_LOG.TXT in the working
+    # directory; collect the messages into the record instead.
+    messages: list[str] = []
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(messages.append)
+    try:
+        record = _run_mujoco(mujoco, mesh, settings, sim_seconds)
+    finally:
+        mujoco.set_mju_user_warning(previous)
+    # The first few distinct messages (they repeat every step with other numbers).
+    distinct = list(dict.fromkeys(message.split(" Time =")[0] for message in messages))
+    record["warning_messages"] = distinct[:4]
+    record["warning_message_count"] = len(messages)
+    return record
+
+
+def _run_mujoco(
+    mujoco: Any, mesh: TetMesh, settings: MujocoSettings, sim_seconds: float
+) -> dict[str, Any]:
     record: dict[str, Any] = {"settings": asdict(settings), "mujoco_version": mujoco.__version__}
     face = probe_start_position(mesh)
     try:
