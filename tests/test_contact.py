@@ -57,9 +57,11 @@ def test_lagrange_multipliers_satisfy_signorini(block, mode: str) -> None:
     assert result.force_world[2] > 0.0
     # No penetration beyond the contact tolerance.
     assert result.penetration_max_m < 1e-6
-    # Complementarity: every point carrying force touches the probe.
+    # Complementarity: every point carrying force touches the probe. The paper's one
+    # linearised response freezes the normals of a curved probe, which leaves gaps of order
+    # (tangential motion)^2 / radius: microns here; the robust iteration removes them.
     distance, _ = model.probe.signed_distance_world(result.contact_points)
-    assert np.all(np.abs(distance) < 1e-6)
+    assert np.all(np.abs(distance) < (5e-5 if mode == "paper" else 1e-6))
 
 
 def test_penalty_penetration_shrinks_as_stiffness_grows(block) -> None:

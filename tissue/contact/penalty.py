@@ -75,13 +75,21 @@ class PenaltyTerm:
         self.distance = distance
         self._cache_key: NDArray[np.float64] | None = None
         self._cache: TermEvaluation | None = None
+        self._cache_pose = np.zeros(7)
         self.last_contacts: Any = None
         self.last_magnitudes = np.zeros(0)
 
     def evaluate(self, positions: NDArray[np.float64]) -> TermEvaluation:
         # One step asks for forces and stiffness at the same positions several times.
+        # The probe moves between steps: the cache is keyed on its pose too.
+        pose = np.concatenate([self.probe.position_world, self.probe.quat_wxyz])
         key = self._cache_key
-        cached = key is not None and key.shape == positions.shape and np.array_equal(key, positions)
+        cached = (
+            key is not None
+            and key.shape == positions.shape
+            and np.array_equal(key, positions)
+            and np.array_equal(self._cache_pose, pose)
+        )
         if cached and self._cache is not None:
             return self._cache
         contacts = detect_contacts(self.surface, positions, self.probe, self.distance)
@@ -115,6 +123,7 @@ class PenaltyTerm:
             stiffness_values=blocks.reshape(-1),
         )
         self._cache_key = positions.copy()
+        self._cache_pose = pose
         self._cache = evaluation
         self.last_contacts = contacts
         self.last_magnitudes = magnitude
