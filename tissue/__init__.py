@@ -12,3 +12,7 @@ import os
 # sequential). So Pardiso runs on the calling thread unless the user says otherwise; this
 # must be set before MKL is loaded. Override with MKL_THREADING_LAYER=INTEL.
 os.environ.setdefault("MKL_THREADING_LAYER", "SEQUENTIAL")
+# Idle OpenMP workers of numba's kernels wait passively: on a busy shared machine spinning
+# workers made parallel kernels 30-250 x slower (measured here under a load of 2-5 on two
+# cores); passive waiting costs about 1-2 ms per step on an idle one.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")

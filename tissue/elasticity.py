@@ -153,6 +153,7 @@ class Elasticity:
         anti_locking: AntiLocking | str = AntiLocking.NONE,
     ) -> None:
         self.anti_locking = AntiLocking.parse(anti_locking)
+        self.materials = materials
         self.law = MaterialLaw.parse(materials.law)
         self._law_code = kern.LAW_STABLE if self.law is MaterialLaw.STABLE else kern.LAW_CLASSIC
         self.mesh = mesh

@@ -336,7 +336,10 @@ class ImplicitIntegrator:
         self.external_force = external_force
         rest = elasticity.mesh.nodes
         self._rest = rest
-        self._blow_up_m = _BLOW_UP_EXTENTS * float(np.max(np.ptp(rest, axis=0)))
+        extent = float(np.max(np.ptp(rest, axis=0)))
+        self._blow_up_m = _BLOW_UP_EXTENTS * extent
+        mu, lam, _ = elasticity.materials.per_tet(elasticity.mesh.region)
+        self._force_unit = float(np.max(mu + lam)) * extent * extent
         self._diagonal_positions: NDArray[np.int64] | None = None
         self._rest_stiffness_matrix: sp.csr_matrix | None = None
         self._keys: NDArray[np.int64] | None = None
@@ -480,6 +483,9 @@ class ImplicitIntegrator:
         # nodes keep moving much as they did, which saves Newton iterations.
         y = potential.start()
         energy, gradient, scale = evaluate(y)
+        # Forces below this are round-off (at rest the residual is pure noise): 1e-12 of what
+        # the stiffest material's moduli exert over the mesh's extent squared.
+        scale_floor = 1e-12 * self._force_unit
         total_linear = 0
         worst_linear = 0.0
         factorizations = 0
@@ -489,7 +495,7 @@ class ImplicitIntegrator:
         iterations = 0
         while True:
             mismatch = float(np.max(np.abs(targets - y[dofs]))) if dofs.size else 0.0
-            relative = float(np.linalg.norm(gradient[free])) / scale if scale > 0 else 0.0
+            relative = float(np.linalg.norm(gradient[free])) / max(scale, scale_floor)
             history.append(relative)
             if not (np.isfinite(relative) and math.isfinite(energy)):
                 return self._failed(x0, v0, StepStatus.DIVERGED)
