@@ -108,6 +108,15 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     tissue.add_argument("--repeats", type=int, default=15, help="timed repeats per figure")
     tissue.add_argument("--json", type=Path, default=Path("bench_tissue.json"))
+    contact = bench_kinds.add_parser("contact", help="step time, force, penetration per method")
+    contact.add_argument("--levels", type=_levels, default=None, help="default 623 to 26220")
+    contact.add_argument("--methods", default=None, help="comma-separated; default all four")
+    contact.add_argument("--modes", default="paper,robust", help="comma-separated modes")
+    contact.add_argument("--json", type=Path, default=Path("bench_contact.json"))
+    peer = bench_kinds.add_parser("peer", help="ours against MuJoCo's flex, same phantom")
+    peer.add_argument("--levels", type=_levels, default=None, help="default 623,4126,26220")
+    peer.add_argument("--sim-seconds", type=float, default=1.0, help="simulated seconds per run")
+    peer.add_argument("--json", type=Path, default=Path("bench_peer.json"))
     return parser
 
 
@@ -132,6 +141,26 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.repeats < 1:
                 parser.error(f"--repeats must be >= 1; got {args.repeats}")
             run_tissue_benchmark(levels=args.levels, repeats=args.repeats, json_path=args.json)
+            return 0
+        if args.command == "bench" and args.bench == "contact":
+            from agents.contact_benchmark import run_contact_benchmark
+            from tissue.contact import ContactMethod
+            from tissue.integrator import IntegrationMode
+
+            methods = args.methods.split(",") if args.methods else None
+            for name in methods or []:
+                ContactMethod.parse(name)
+            modes = args.modes.split(",")
+            for name in modes:
+                IntegrationMode.parse(name)
+            run_contact_benchmark(args.levels, methods, modes, args.json)
+            return 0
+        if args.command == "bench" and args.bench == "peer":
+            from agents.peer_benchmark import run_peer_benchmark
+
+            if not args.sim_seconds > 0:
+                parser.error(f"--sim-seconds must be > 0; got {args.sim_seconds}")
+            run_peer_benchmark(args.levels, args.json, args.sim_seconds)
             return 0
     except TissueInputError as error:
         print(f"probegym: error: {error}", file=sys.stderr)

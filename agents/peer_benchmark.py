@@ -66,6 +66,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from agents.contact_benchmark import threading_environment
 from tissue.contact import make_contact_model
 from tissue.contact.prescribed import PrescribedParams
 from tissue.material import NeoHookean, TissueMaterials
@@ -443,23 +444,6 @@ def benchmark_level(level: int, sim_seconds: float) -> dict[str, Any]:
         "load_average": os.getloadavg()[0],
         "cpu_count": os.cpu_count(),
         "threading": threading_environment(),
-    }
-
-
-def threading_environment() -> dict[str, Any]:
-    """How our numba kernels were threaded: on a shared 2-core machine the OpenMP layer's
-    waiting policy can change parallel kernels' times by orders of magnitude."""
-    import numba
-
-    try:
-        layer = numba.threading_layer()
-    except ValueError:  # no parallel kernel has run yet
-        layer = None
-    return {
-        "numba_threading_layer": layer,
-        "numba_num_threads": numba.get_num_threads(),
-        "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY"),
-        "KMP_BLOCKTIME": os.environ.get("KMP_BLOCKTIME"),
     }
 
 
