@@ -86,7 +86,8 @@ def test_newton_converges_quadratically_under_prescribed_top() -> None:
     sim.prescribe(top, mesh.nodes[top] + [0.001, 0.0, -0.004])  # 40 % squeeze and shear
     result = sim.step()
     assert result.status is StepStatus.OK, result
-    history = np.array(result.newton_residuals)
+    # The first entry is measured before the prescribed nodes reach their targets.
+    history = np.array(result.newton_residuals)[1:]
     assert history[-1] <= 1e-11
     # Near the solution (where robust mode uses the exact tangent, below a relative residual
     # of 0.1, after any fallback to projection) each residual is at most about the square

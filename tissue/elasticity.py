@@ -35,19 +35,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from enum import Enum
 
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from tissue import fem_kernels as kern
-from tissue.errors import ConfigError, TissueInputError
+from tissue.choices import Choice
+from tissue.errors import TissueInputError
 from tissue.material import MaterialLaw, TissueMaterials
 from tissue.mesh import TetMesh
 
 
-class AntiLocking(str, Enum):
+class AntiLocking(Choice):
     """Volumetric anti-locking treatment of the linear tets.
 
     Attributes:
@@ -60,15 +60,8 @@ class AntiLocking(str, Enum):
     ANP = "anp"
 
     @classmethod
-    def parse(cls, value: str | AntiLocking) -> AntiLocking:
-        """The member named ``value``; ConfigError listing the valid names otherwise."""
-        try:
-            return cls(value)
-        except ValueError:
-            valid = ", ".join(repr(m.value) for m in cls)
-            raise ConfigError(
-                f"unknown anti-locking method {value!r}; choose one of {valid}"
-            ) from None
+    def noun(cls) -> str:
+        return "anti-locking method"
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,6 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from enum import Enum
 from typing import Protocol
 
 import numba
@@ -44,6 +43,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from tissue.choices import Choice
 from tissue.elasticity import Elasticity, ElasticState
 from tissue.errors import ConfigError
 from tissue.solvers import (
@@ -64,21 +64,15 @@ _MIN_STEP_FRACTION = 2.0**-12
 _PROJECTION_SWITCH = 1e-1
 
 
-class IntegrationMode(str, Enum):
+class IntegrationMode(Choice):
     """How each implicit step is solved."""
 
     PAPER = "paper"
     ROBUST = "robust"
 
     @classmethod
-    def parse(cls, value: str | IntegrationMode) -> IntegrationMode:
-        try:
-            return cls(value)
-        except ValueError:
-            valid = ", ".join(repr(m.value) for m in cls)
-            raise ConfigError(
-                f"unknown integration mode {value!r}; choose one of {valid}"
-            ) from None
+    def noun(cls) -> str:
+        return "integration mode"
 
 
 @dataclass(frozen=True)

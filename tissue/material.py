@@ -21,27 +21,27 @@ parameters mu = E / (2 (1 + nu)) and lambda = E nu / ((1 + nu)(1 - 2 nu)):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from enum import Enum
 
 import numpy as np
 from numpy.typing import NDArray
 
-from tissue.errors import MaterialError
+from tissue.choices import Choice
+from tissue.errors import MaterialError, TissueInputError
 
 
-class MaterialLaw(str, Enum):
+class MaterialLaw(Choice):
     """The hyperelastic energy used for every tet."""
 
     STABLE = "stable"
     CLASSIC = "classic"
 
     @classmethod
-    def parse(cls, value: str | MaterialLaw) -> MaterialLaw:
-        try:
-            return cls(value)
-        except ValueError:
-            valid = ", ".join(repr(m.value) for m in cls)
-            raise MaterialError(f"unknown material law {value!r}; choose one of {valid}") from None
+    def noun(cls) -> str:
+        return "material law"
+
+    @classmethod
+    def error(cls) -> type[TissueInputError]:
+        return MaterialError
 
 
 @dataclass(frozen=True)

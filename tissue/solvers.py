@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from enum import Enum
 from typing import Protocol
 
 import numba
@@ -33,10 +32,11 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from tissue.choices import Choice
 from tissue.errors import ConfigError
 
 
-class LinearSolverKind(str, Enum):
+class LinearSolverKind(Choice):
     """The linear solver used for each implicit step."""
 
     CG = "cg"
@@ -44,15 +44,11 @@ class LinearSolverKind(str, Enum):
     REUSE = "reuse"
 
     @classmethod
-    def parse(cls, value: str | LinearSolverKind) -> LinearSolverKind:
-        try:
-            return cls(value)
-        except ValueError:
-            valid = ", ".join(repr(m.value) for m in cls)
-            raise ConfigError(f"unknown linear solver {value!r}; choose one of {valid}") from None
+    def noun(cls) -> str:
+        return "linear solver"
 
 
-class DirectBackend(str, Enum):
+class DirectBackend(Choice):
     """The library behind direct factorisations."""
 
     AUTO = "auto"
@@ -60,14 +56,8 @@ class DirectBackend(str, Enum):
     SUPERLU = "superlu"
 
     @classmethod
-    def parse(cls, value: str | DirectBackend) -> DirectBackend:
-        try:
-            return cls(value)
-        except ValueError:
-            valid = ", ".join(repr(m.value) for m in cls)
-            raise ConfigError(
-                f"unknown direct solver backend {value!r}; choose one of {valid}"
-            ) from None
+    def noun(cls) -> str:
+        return "direct solver backend"
 
 
 @dataclass(frozen=True)

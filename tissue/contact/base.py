@@ -13,20 +13,20 @@ from __future__ import annotations
 import abc
 import time
 from dataclasses import dataclass, field
-from enum import Enum
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from tissue.choices import Choice
 from tissue.embedding import BarycentricEmbedding
-from tissue.errors import ConfigError, TissueInputError
+from tissue.errors import TissueInputError
 from tissue.mesh import TetMesh, boundary_faces
 from tissue.probe import Probe, ProbeShape
 from tissue.status import StepStatus
 
 
-class ContactMethod(str, Enum):
+class ContactMethod(Choice):
     """The probe-tissue interaction strategies (Tagliabue et al. 2020, section 2.1)."""
 
     PENALTY = "penalty"
@@ -35,12 +35,8 @@ class ContactMethod(str, Enum):
     PBD = "pbd"
 
     @classmethod
-    def parse(cls, value: str | ContactMethod) -> ContactMethod:
-        try:
-            return cls(value)
-        except ValueError:
-            valid = ", ".join(repr(m.value) for m in cls)
-            raise ConfigError(f"unknown contact method {value!r}; choose one of {valid}") from None
+    def noun(cls) -> str:
+        return "contact method"
 
 
 @dataclass(frozen=True)

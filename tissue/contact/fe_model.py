@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from tissue.contact.base import ContactModel, SurfacePoints
+from tissue.errors import ConfigError
 from tissue.material import TissueMaterials
 from tissue.mesh import TetMesh
 from tissue.probe import Probe, ProbeShape
@@ -86,7 +88,11 @@ class FEContactModel(ContactModel):
         probe_shape: the rigid tool.
         materials: per-region materials (defaults as the published scene).
         config: how the tissue is simulated (``mode="paper"`` or ``"robust"``).
+        params: the strategy's parameters (its ``params_type``), or None for defaults.
     """
+
+    #: The strategy's parameter dataclass; ``params=None`` builds its defaults.
+    params_type: type = type(None)
 
     def __init__(
         self,
@@ -94,9 +100,16 @@ class FEContactModel(ContactModel):
         probe_shape: ProbeShape,
         materials: TissueMaterials | None = None,
         config: SimulationConfig | None = None,
+        params: Any = None,
     ) -> None:
         super().__init__(mesh, probe_shape)
         self.sim = TissueSimulator(mesh, materials, config)
+        if params is not None and not isinstance(params, self.params_type):
+            raise ConfigError(
+                f"{type(self).__name__} takes {self.params_type.__name__} parameters; "
+                f"got {type(params).__name__}"
+            )
+        self.params = params if params is not None else self.params_type()
 
     @property
     def node_positions(self) -> NDArray[np.float64]:

@@ -40,10 +40,6 @@ from tissue.contact.base import ContactMethod
 from tissue.contact.fe_model import Contacts, FEContactModel, constraint_rows, detect_contacts
 from tissue.errors import ConfigError
 from tissue.integrator import IntegrationMode
-from tissue.material import TissueMaterials
-from tissue.mesh import TetMesh
-from tissue.probe import ProbeShape
-from tissue.simulator import SimulationConfig
 from tissue.status import StepStatus
 
 
@@ -116,16 +112,11 @@ class LagrangeContact(FEContactModel):
 
     method = ContactMethod.LM
 
-    def __init__(
-        self,
-        mesh: TetMesh,
-        probe_shape: ProbeShape,
-        materials: TissueMaterials | None = None,
-        config: SimulationConfig | None = None,
-        params: LagrangeParams | None = None,
-    ) -> None:
-        super().__init__(mesh, probe_shape, materials, config)
-        self.params = params or LagrangeParams()
+    params_type = LagrangeParams
+    params: LagrangeParams
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
         # Warm start: last forces by surface point.
         self._warm = np.zeros(self.surface.count)
 

@@ -28,10 +28,7 @@ from tissue.contact.base import ContactMethod, SurfacePoints
 from tissue.contact.fe_model import FEContactModel, detect_contacts
 from tissue.errors import ConfigError
 from tissue.integrator import TermEvaluation
-from tissue.material import TissueMaterials
-from tissue.mesh import TetMesh
-from tissue.probe import Probe, ProbeShape
-from tissue.simulator import SimulationConfig
+from tissue.probe import Probe
 from tissue.status import StepStatus
 
 # The default k_s makes a contact point as stiff as this many times the tissue under it
@@ -135,22 +132,17 @@ class PenaltyContact(FEContactModel):
 
     method = ContactMethod.PENALTY
 
-    def __init__(
-        self,
-        mesh: TetMesh,
-        probe_shape: ProbeShape,
-        materials: TissueMaterials | None = None,
-        config: SimulationConfig | None = None,
-        params: PenaltyParams | None = None,
-    ) -> None:
-        super().__init__(mesh, probe_shape, materials, config)
-        self.params = params or PenaltyParams()
+    params_type = PenaltyParams
+    params: PenaltyParams
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
         stiffness = self.params.stiffness_n_per_m
         if stiffness is None:
             stiffness = (
                 DEFAULT_STIFFNESS_RATIO
                 * self.sim.materials.tissue.young_pa
-                * _mean_edge(self.surface, mesh.nodes)
+                * _mean_edge(self.surface, self.mesh.nodes)
             )
         self.stiffness_n_per_m = float(stiffness)
         self.term = PenaltyTerm(

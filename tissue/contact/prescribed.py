@@ -34,10 +34,7 @@ from numpy.typing import NDArray
 from tissue.contact.base import ContactMethod
 from tissue.contact.fe_model import FEContactModel
 from tissue.errors import ConfigError
-from tissue.material import TissueMaterials
-from tissue.mesh import TetMesh, boundary_faces
-from tissue.probe import ProbeShape
-from tissue.simulator import SimulationConfig
+from tissue.mesh import boundary_faces
 from tissue.status import StepStatus
 
 
@@ -68,22 +65,18 @@ class PrescribedContact(FEContactModel):
 
     method = ContactMethod.PRESCRIBED
 
-    def __init__(
-        self,
-        mesh: TetMesh,
-        probe_shape: ProbeShape,
-        materials: TissueMaterials | None = None,
-        config: SimulationConfig | None = None,
-        params: PrescribedParams | None = None,
-    ) -> None:
-        super().__init__(mesh, probe_shape, materials, config)
-        self.params = params or PrescribedParams()
-        self.boundary_nodes = np.setdiff1d(np.unique(boundary_faces(mesh.tets)), mesh.fixed_nodes)
+    params_type = PrescribedParams
+    params: PrescribedParams
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        boundary = np.unique(boundary_faces(self.mesh.tets))
+        self.boundary_nodes = np.setdiff1d(boundary, self.mesh.fixed_nodes)
         if self.params.node_set is not None:
             given = np.asarray(self.params.node_set, dtype=np.int64)
-            if given.size == 0 or given.min() < 0 or given.max() >= mesh.node_count:
+            if given.size == 0 or given.min() < 0 or given.max() >= self.mesh.node_count:
                 raise ConfigError(
-                    f"node_set must hold node indices in [0, {mesh.node_count - 1}]; got "
+                    f"node_set must hold node indices in [0, {self.mesh.node_count - 1}]; got "
                     f"{given.size} indices"
                 )
         self._nodes = np.zeros(0, dtype=np.int64)
