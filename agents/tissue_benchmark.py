@@ -7,6 +7,7 @@ shared machine.
 
 from __future__ import annotations
 
+import gc
 import json
 import platform
 import resource
@@ -80,6 +81,10 @@ def benchmark_level(level: int, repeats: int) -> dict[str, float | int | str]:
         statuses.append(result.status.value)
     newton_step_ms = _median_ms(samples)
 
+    # One simulator (and one factorisation) alive at a time: peak memory is per level.
+    del robust, elasticity
+    gc.collect()
+
     # Paper-mode steps (assembly + 25 CG iterations + update) from the same loaded state.
     paper = TissueSimulator(mesh, materials, SimulationConfig(mode="paper"))
     paper.set_state(loaded_positions, loaded_velocities)
@@ -132,36 +137,12 @@ def benchmark_level(level: int, repeats: int) -> dict[str, float | int | str]:
 
 def _paper_system(sim: TissueSimulator, nodes: np.ndarray, depth_m: float) -> ConstrainedSystem:
     """The constrained linear system of the paper's eq. (5) at the simulator's state."""
-    import scipy.sparse as sp
-
-    cfg = sim.integrator.config
-    h = sim.config.tissue_dt
-    x, v = sim.positions, sim.velocities
-    state = sim.elasticity.evaluate(x, tangent=True)
-    stiffness = state.stiffness
-    assert stiffness is not None
-    m = np.repeat(sim.elasticity.lumped_mass, 3)
-    data = (h * cfg.rayleigh_stiffness + h * h) * stiffness.data
-    matrix = sp.csr_matrix((data, stiffness.indices, stiffness.indptr), shape=stiffness.shape)
-    matrix = (matrix + sp.diags((1.0 + h * cfg.rayleigh_mass) * m)).tocsr()
-    matrix.sort_indices()
-    kv = stiffness @ v.reshape(-1)
-    rhs = h * (
-        state.forces.reshape(-1)
-        - cfg.rayleigh_mass * m * v.reshape(-1)
-        - cfg.rayleigh_stiffness * kv
+    _press(sim, nodes, depth_m)
+    dofs, targets = sim.constraints()
+    linear = sim.integrator.paper_system(
+        sim.positions, sim.velocities, sim.config.tissue_dt, dofs, targets
     )
-    rhs -= h * h * kv
-    constrained_nodes = np.concatenate([sim.mesh.fixed_nodes, nodes])
-    targets = np.concatenate(
-        [sim.mesh.nodes[sim.mesh.fixed_nodes], sim.rest_positions[nodes] + [0.0, 0.0, -depth_m]]
-    )
-    dofs = (3 * constrained_nodes[:, None] + np.arange(3)).reshape(-1)
-    mask = np.zeros(rhs.size, dtype=bool)
-    mask[dofs] = True
-    values = np.zeros(rhs.size)
-    values[dofs] = ((targets - x[constrained_nodes]) / h - v[constrained_nodes]).reshape(-1)
-    return ConstrainedSystem(matrix, rhs, mask, values)
+    return linear.system
 
 
 def run_tissue_benchmark(

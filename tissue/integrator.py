@@ -198,13 +198,14 @@ class PaperSystem:
 
     Attributes:
         system: the constrained system (matrix eliminated in place).
-        original_data: the matrix's CSR data before elimination (for reactions).
+        constrained_rows: the constrained rows before elimination, as CSR arrays
+            (row pointer, column indices, values), one row per constrained dof (for reactions).
         rhs: the right-hand side before elimination.
         dofs: the constrained dofs.
     """
 
     system: ConstrainedSystem
-    original_data: NDArray[np.float64]
+    constrained_rows: tuple[NDArray[np.int64], NDArray[np.int32], NDArray[np.float64]]
     rhs: NDArray[np.float64]
     dofs: NDArray[np.int64]
 
@@ -419,17 +420,24 @@ class ImplicitIntegrator:
             rhs = h * (force - damping_force) - h * h * (stiffness @ v_flat)
             values[dofs] = (targets - x_flat[dofs]) / h - v_flat[dofs]
         matrix = sp.csr_matrix((data, stiffness.indices, stiffness.indptr), shape=stiffness.shape)
-        original = matrix.data.copy()
+        # Reactions need the constrained rows as they were before elimination: keep only those
+        # (a copy of the whole matrix costs tens of MB on the finest meshes).
+        starts = matrix.indptr[dofs].astype(np.int64)
+        counts = matrix.indptr[dofs + 1] - starts
+        row_pointer = np.concatenate([[0], np.cumsum(counts)])
+        positions = np.arange(row_pointer[-1]) + np.repeat(starts - row_pointer[:-1], counts)
+        rows = (row_pointer, matrix.indices[positions], matrix.data[positions].copy())
         system = ConstrainedSystem(matrix, rhs, self._dof_mask(dofs), values)
-        return PaperSystem(system, original, rhs, dofs)
+        return PaperSystem(system, rows, rhs, dofs)
 
     def paper_finish(self, x, v, h, linear: PaperSystem, solution, report) -> StepOutcome:
         """Update the state from a solution of :meth:`paper_system`; reactions included."""
         if not np.all(np.isfinite(solution)):
             return self._failed(x, v, StepStatus.SOLVER_FAILED)
-        matrix, dofs = linear.system.matrix, linear.dofs
+        dofs = linear.dofs
         # Reactions: what the constraints add so that the constrained rows balance.
-        rows = _row_products(matrix.indptr, matrix.indices, linear.original_data, dofs, solution)
+        pointer, indices, data = linear.constrained_rows
+        rows = _row_products(pointer, indices, data, np.arange(dofs.size), solution)
         reaction = np.zeros(x.size)
         if self.config.quasi_static:
             new_x = x + solution.reshape(-1, 3)

@@ -171,6 +171,7 @@ class PBDConfig:
     tissue_dt: float = 0.02
     substeps: int = 10
     iterations: int = 1
+    contact_zone_iterations: int = 3
     deviatoric_compliance_scale: float = CALIBRATED_DEVIATORIC_COMPLIANCE_SCALE
     volume_compliance_scale: float = CALIBRATED_VOLUME_COMPLIANCE_SCALE
     damping_per_s: float = 2.0
@@ -185,10 +186,14 @@ class PBDConfig:
                 f"tissue_dt must be a time step in seconds in (0, 1]; got {self.tissue_dt!r} "
                 "(the paper uses 0.02)"
             )
-        for name in ("substeps", "iterations"):
+        for name, smallest in (("substeps", 1), ("iterations", 1), ("contact_zone_iterations", 0)):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                raise ConfigError(f"{name} must be an integer >= 1; got {value!r}")
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, np.integer))
+                or value < smallest
+            ):
+                raise ConfigError(f"{name} must be an integer >= {smallest}; got {value!r}")
             object.__setattr__(self, name, int(value))
         for name in ("deviatoric_compliance_scale", "volume_compliance_scale"):
             value = getattr(self, name)
@@ -252,8 +257,9 @@ def _project_tets(
     lam_dev: NDArray[np.float64],
     lam_hyd: NDArray[np.float64],
     support: NDArray[np.float64],
+    tet_ids: NDArray[np.int64],
 ) -> None:
-    """One Gauss-Seidel sweep of the coupled neo-Hookean constraint pair over every tet.
+    """One Gauss-Seidel sweep of the coupled neo-Hookean constraint pair over ``tet_ids``.
 
     Args:
         x: node positions [m], (node_count, 3), updated in place.
@@ -265,13 +271,14 @@ def _project_tets(
         lam_dev, lam_hyd: this substep's multipliers [kg m^2], (tet_count,), updated.
         support: per-node sum of grad C * d lambda at fixed nodes, (node_count, 3), updated;
             divided by h^2 it is the elastic force on the fixed nodes.
+        tet_ids: the tets to project, in this order (all of them, or the contact zone's).
     """
     # Scratch buffers allocated once: an allocation per tet would cost as much as the maths.
     g = np.empty((4, 3))
     gh = np.empty((4, 3))
     f = np.empty((3, 3))
     cof = np.empty((3, 3))
-    for t in range(tets.shape[0]):
+    for t in tet_ids:
         i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
         # F = Ds Dm^-1, Ds columns are the edges from node 0.
         for a in range(3):
@@ -401,6 +408,38 @@ def _project_contacts(
 
 
 @nb.njit(cache=True)
+def _contact_zone(
+    point_nodes: NDArray[np.int64],
+    point_weights: NDArray[np.float64],
+    points: NDArray[np.int64],
+    node_tet_start: NDArray[np.int64],
+    node_tets: NDArray[np.int64],
+    order: NDArray[np.int64],
+) -> NDArray[np.int64]:
+    """The tets incident to a node that carries a contact point (weight != 0), in ``order``."""
+    marked = np.zeros(order.shape[0], dtype=np.bool_)
+    count = 0
+    for k in range(points.shape[0]):
+        p = points[k]
+        for local in range(4):
+            if point_weights[p, local] == 0.0:
+                continue
+            node = point_nodes[p, local]
+            for j in range(node_tet_start[node], node_tet_start[node + 1]):
+                t = node_tets[j]
+                if not marked[t]:
+                    marked[t] = True
+                    count += 1
+    zone = np.empty(count, dtype=np.int64)
+    count = 0
+    for t in order:
+        if marked[t]:
+            zone[count] = t
+            count += 1
+    return zone
+
+
+@nb.njit(cache=True)
 def _min_volume_ratio(
     x: NDArray[np.float64], tets: NDArray[np.int64], rest_volume: NDArray[np.float64]
 ) -> float:
@@ -509,6 +548,12 @@ class PBDContact(ContactModel):
         self._point_weights = np.ascontiguousarray(self.surface.embedding.weights)
         self._lam_dev = np.zeros(mesh.tet_count)
         self._lam_hyd = np.zeros(mesh.tet_count)
+        self._all_tets = np.arange(mesh.tet_count, dtype=np.int64)
+        # Node -> incident tets (CSR), for the contact zone.
+        self._node_tets = np.argsort(tets.ravel(), kind="stable").astype(np.int64) // 4
+        self._node_tet_start = np.concatenate(
+            [[0], np.cumsum(np.bincount(tets.ravel(), minlength=mesh.node_count))]
+        ).astype(np.int64)
         self._reset_tissue()
 
     # ------------------------------------------------------------------ interface
@@ -576,7 +621,19 @@ class PBDContact(ContactModel):
             contact_points, normals, anchors = self._detect(x, position, rotation, shape, reach)
             detect_s += time.perf_counter() - tic
             lam_contact = np.zeros(contact_points.shape[0])
-            for _ in range(cfg.iterations):
+            zone = self._all_tets
+            for sweep in range(cfg.iterations + cfg.contact_zone_iterations):
+                if sweep == cfg.iterations:
+                    if not contact_points.size:
+                        break
+                    zone = _contact_zone(
+                        self._point_nodes,
+                        self._point_weights,
+                        contact_points,
+                        self._node_tet_start,
+                        self._node_tets,
+                        self._all_tets,
+                    )
                 _project_tets(
                     x,
                     self._inv_mass,
@@ -588,6 +645,7 @@ class PBDContact(ContactModel):
                     self._lam_dev,
                     self._lam_hyd,
                     support_step,
+                    zone,
                 )
                 if contact_points.size:
                     _project_contacts(
