@@ -511,7 +511,7 @@ class ImplicitIntegrator:
             # one does not give a descent direction.
             project = bool(cfg.project_psd) and relative > _PROJECTION_SWITCH
             # Inexact Newton: solve only as accurately as the current residual deserves.
-            tolerance = min(1e-2, max(relative, 1e-10))
+            tolerance = min(1e-2, max(0.1 * relative, 1e-10))
             try:
                 step, report = direction(y, gradient, project, tolerance)
                 descends = mismatch > 0.0 or float(gradient @ step) < 0.0
