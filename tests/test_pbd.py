@@ -200,6 +200,8 @@ def test_inversion_is_reported(block: TetMesh, monkeypatch: pytest.MonkeyPatch) 
         ({"substeps": 0}, "substeps"),
         ({"substeps": 2.5}, "substeps"),
         ({"iterations": -1}, "iterations"),
+        ({"contact_zone_iterations": -1}, "contact_zone_iterations"),
+        ({"contact_zone_iterations": 1.5}, "contact_zone_iterations"),
         ({"deviatoric_compliance_scale": 0.0}, "deviatoric_compliance_scale"),
         ({"volume_compliance_scale": -1.0}, "volume_compliance_scale"),
         ({"damping_per_s": -0.1}, "damping_per_s"),
