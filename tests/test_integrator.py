@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tissue.block import block_mesh, nodes_on_plane
+from tissue.block import block_mesh
 from tissue.integrator import node_dofs
 from tissue.material import NeoHookean, TissueMaterials
+from tissue.mesh_io import nodes_on_plane
 from tissue.simulator import SimulationConfig, TissueSimulator, settle
 from tissue.status import StepStatus
 

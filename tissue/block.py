@@ -7,6 +7,7 @@ from numpy.typing import NDArray
 
 from tissue.errors import MeshError
 from tissue.mesh import TetMesh
+from tissue.mesh_io import nodes_on_plane
 
 # Kuhn (Freudenthal) split of the unit cube into six positively oriented tets that share the
 # main diagonal 0-7; neighbouring cubes then agree on every face, so the mesh is conforming.
@@ -84,32 +85,6 @@ def _graded_axes(size_m, divisions, origin_m, grading) -> list[NDArray[np.float6
             ticks = np.concatenate([[0.0], np.cumsum(widths) / widths.sum()])
         axes.append(start + length * ticks)
     return axes
-
-
-def nodes_on_plane(
-    positions: NDArray[np.float64], plane: str, tolerance_m: float | None = None
-) -> NDArray[np.int64]:
-    """Indices of nodes on an extreme plane of the point set, e.g. ``"z=min"`` or ``"x=max"``.
-
-    Args:
-        positions: node positions [m], (node_count, 3).
-        plane: ``AXIS=min`` or ``AXIS=max`` with AXIS one of x, y, z.
-        tolerance_m: distance from the plane still counted on it [m]; default 1e-6 of the
-            extent along that axis.
-    """
-    try:
-        axis_name, side = (part.strip().lower() for part in plane.split("="))
-        axis = "xyz".index(axis_name)
-        if side not in ("min", "max") or len(axis_name) != 1:
-            raise ValueError
-    except ValueError:
-        raise MeshError(
-            f"plane must look like 'z=min' (axis x, y or z; side min or max); got {plane!r}"
-        ) from None
-    values = positions[:, axis]
-    level = values.min() if side == "min" else values.max()
-    tolerance = tolerance_m if tolerance_m is not None else 1e-6 * float(np.ptp(values) or 1.0)
-    return np.flatnonzero(np.abs(values - level) <= tolerance)
 
 
 def centred_ticks(

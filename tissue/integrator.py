@@ -462,11 +462,11 @@ class ImplicitIntegrator:
         middle = start + 0.5 * (targets - start)
         first = self._robust_step(x, v, 0.5 * h, dofs, middle, terms, subdivisions_left - 1)
         if first.status in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
-            return _merge(outcome, first, first)
+            return outcome  # halving found nothing better: the undivided attempt stands
         second = self._robust_step(
             first.positions, first.velocities, 0.5 * h, dofs, targets, terms, subdivisions_left - 1
         )
-        merged = _merge(first, second, second)
+        merged = _merge(first, second)
         merged.subdivisions += 1
         return merged if _rank(merged) <= _rank(outcome) else outcome
 
@@ -698,19 +698,19 @@ def _rank(outcome: StepOutcome) -> int:
     return SEVERITY[outcome.status]
 
 
-def _merge(first: StepOutcome, second: StepOutcome, final: StepOutcome) -> StepOutcome:
-    """Sum the work of two substeps; state and status from ``final``, the worst status wins."""
+def _merge(first: StepOutcome, second: StepOutcome) -> StepOutcome:
+    """Two consecutive substeps as one: the state of the second, the worse status, all work."""
     return StepOutcome(
-        status=worst(first.status, second.status) if final is second else final.status,
-        positions=final.positions,
-        velocities=final.velocities,
-        reaction_forces=final.reaction_forces,
-        elastic_energy_j=final.elastic_energy_j,
+        status=worst(first.status, second.status),
+        positions=second.positions,
+        velocities=second.velocities,
+        reaction_forces=second.reaction_forces,
+        elastic_energy_j=second.elastic_energy_j,
         newton_iterations=first.newton_iterations + second.newton_iterations,
         linear_iterations=first.linear_iterations + second.linear_iterations,
         linear_residual=max(first.linear_residual, second.linear_residual),
-        newton_residual=final.newton_residual,
+        newton_residual=second.newton_residual,
         subdivisions=first.subdivisions + second.subdivisions,
-        min_volume_ratio=final.min_volume_ratio,
+        min_volume_ratio=second.min_volume_ratio,
         factorizations=first.factorizations + second.factorizations,
     )

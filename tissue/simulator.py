@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -155,7 +155,6 @@ class StepResult:
     factorizations: int
     min_volume_ratio: float
     newton_residuals: tuple[float, ...] = ()
-    extras: dict[str, Any] = field(default_factory=dict)
 
     def reaction_force_n(self, nodes: ArrayLike) -> NDArray[np.float64]:
         """Total force [N], shape (3,), the constraints apply to the tissue at ``nodes``."""
