@@ -40,6 +40,7 @@ from tissue.contact.base import ContactMethod
 from tissue.contact.fe_model import Contacts, FEContactModel, constraint_rows, detect_contacts
 from tissue.errors import ConfigError
 from tissue.integrator import IntegrationMode
+from tissue.solvers import SolveReport
 from tissue.status import StepStatus
 
 
@@ -155,19 +156,17 @@ class LagrangeContact(FEContactModel):
         )
         return forces, compliance_columns, int(sweeps), float(change)
 
-    def _finish(self, contacts: Contacts, forces: NDArray[np.float64]):
+    def _finish(
+        self, contacts: Contacts, forces: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Keep the forces for the next warm start; contact points and forces on the probe."""
         self._warm[:] = 0.0
         self._warm[contacts.points] = forces
         positions = self.surface.positions(self.sim.positions)[contacts.points]
         active = forces > 0.0
-        _, normal = (
-            self.probe.signed_distance_world(positions[active])
-            if np.any(active)
-            else (
-                None,
-                np.zeros((0, 3)),
-            )
-        )
+        if not np.any(active):
+            return np.zeros((0, 3)), np.zeros((0, 3))
+        _, normal = self.probe.signed_distance_world(positions[active])
         return positions[active], -forces[active, None] * normal
 
     # ------------------------------------------------------------------ paper
@@ -207,7 +206,7 @@ class LagrangeContact(FEContactModel):
         report = _report(indefinite)
         outcome = integrator.paper_finish(x, v, h, linear, dv, report)
         status = sim.commit(outcome, h, start).status
-        points, on_probe = self._finish(contacts, forces) if contacts.count else _empty()
+        points, on_probe = self._finish(contacts, forces)
         diagnostics = {
             "constraints": contacts.count,
             "active": int(np.sum(forces > 0)),
@@ -306,10 +305,7 @@ class LagrangeContact(FEContactModel):
         if status is StepStatus.NOT_CONVERGED and outcome.status is StepStatus.OK:
             outcome.status = StepStatus.NOT_CONVERGED
         status = sim.commit(outcome, h, start).status
-        self._warm[:] = 0.0
-        if contacts.count:
-            self._warm[contacts.points] = forces
-        points, on_probe = self._finish(contacts, forces) if contacts.count else _empty()
+        points, on_probe = self._finish(contacts, forces)
         diagnostics = {
             "constraints": contacts.count,
             "active": int(np.sum(forces > 0)),
@@ -321,11 +317,6 @@ class LagrangeContact(FEContactModel):
         return status, points, on_probe, diagnostics
 
 
-def _report(indefinite: bool):
-    from tissue.solvers import SolveReport
-
+def _report(indefinite: bool) -> SolveReport:
+    """What a direct solve did, for the integrator's bookkeeping."""
     return SolveReport(0, 0.0, True, True, indefinite)
-
-
-def _empty() -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    return np.zeros((0, 3)), np.zeros((0, 3))
