@@ -522,16 +522,8 @@ def extract_volume_mesh(gmsh: Any, region_of_volume: dict[int, int]) -> _RawMesh
             region_blocks.append(np.full(block.shape[0], label, dtype=np.int64))
     if not tag_blocks:
         raise MeshError("gmsh produced no tetrahedra")
-    tet_tags = np.concatenate(tag_blocks)
     region = np.concatenate(region_blocks)
-    node_tags, coordinates, _ = gmsh.model.mesh.getNodes()
-    coordinates = np.asarray(coordinates, dtype=np.float64).reshape(-1, 3)
-    node_tags = np.asarray(node_tags, dtype=np.int64)
-    used, tets = np.unique(tet_tags, return_inverse=True)
-    position_of_tag = np.full(int(node_tags.max()) + 1, -1, dtype=np.int64)
-    position_of_tag[node_tags] = np.arange(node_tags.size)
-    nodes = coordinates[position_of_tag[used]]
-    tets = tets.reshape(-1, 4).astype(np.int64)
+    nodes, tets = _compact(gmsh, np.concatenate(tag_blocks))
     negative = signed_tet_volumes(nodes, tets) < 0
     tets[negative, 2], tets[negative, 3] = tets[negative, 3], tets[negative, 2].copy()
     return _RawMesh(nodes=nodes, tets=tets, region=region)
@@ -546,14 +538,24 @@ def extract_surface_mesh(gmsh: Any) -> tuple[NDArray[np.float64], NDArray[np.int
             if element_type != 2:  # 2 = 3-node triangle
                 raise MeshError(f"gmsh produced element type {element_type}; expected triangles")
             blocks.append(np.asarray(tags, dtype=np.int64).reshape(-1, 3))
-    triangle_tags = np.concatenate(blocks)
+    return _compact(gmsh, np.concatenate(blocks))
+
+
+def _compact(
+    gmsh: Any, element_tags: NDArray[np.int64]
+) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Positions [m] of the nodes the elements use, and the elements renumbered onto them.
+
+    Args:
+        element_tags: gmsh node tags per element, (element_count, k).
+    """
     node_tags, coordinates, _ = gmsh.model.mesh.getNodes()
     coordinates = np.asarray(coordinates, dtype=np.float64).reshape(-1, 3)
     node_tags = np.asarray(node_tags, dtype=np.int64)
-    used, triangles = np.unique(triangle_tags, return_inverse=True)
+    used, elements = np.unique(element_tags, return_inverse=True)
     position_of_tag = np.full(int(node_tags.max()) + 1, -1, dtype=np.int64)
     position_of_tag[node_tags] = np.arange(node_tags.size)
-    return coordinates[position_of_tag[used]], triangles.reshape(-1, 3).astype(np.int64)
+    return coordinates[position_of_tag[used]], elements.reshape(element_tags.shape).astype(np.int64)
 
 
 def calibrate_size(
