@@ -1,4 +1,4 @@
-"""The ``probegym`` command line: ``demo``, ``mesh``, ``bench tissue``.
+"""The ``probegym`` command line: ``demo``, ``mesh``, ``compress``, ``study``, ``bench``.
 
 Every subcommand validates its arguments before doing any work and exits with status 2
 and a message naming the bad value when they are wrong.
@@ -97,6 +97,13 @@ def _build_parser() -> argparse.ArgumentParser:
     compress.add_argument("--online", action="store_true", help="prescribed: update contact set")
     compress.add_argument("--json", type=Path, default=Path("compress.json"))
 
+    study = commands.add_parser(
+        "study", help="the compression study of Tagliabue et al. 2020: tables, figures, report"
+    )
+    from agents.study.command import add_study_arguments
+
+    add_study_arguments(study)
+
     bench = commands.add_parser("bench", help="benchmarks that print a table and write JSON")
     bench_kinds = bench.add_subparsers(dest="bench", required=True, metavar="BENCHMARK")
     tissue = bench_kinds.add_parser("tissue", help="assembly, paper step, factorisation, Newton")
@@ -133,6 +140,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             from agents.compress_command import run_compress_command
 
             return run_compress_command(args)
+        if args.command == "study":
+            from agents.study.command import run_study_command
+
+            return run_study_command(args)
         if args.command == "mesh":
             return _mesh(args.level, args.out)
         if args.command == "bench" and args.bench == "tissue":

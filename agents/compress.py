@@ -20,6 +20,7 @@ from tissue.contact import ContactMethod, ContactModel, make_contact_model
 from tissue.contact.base import ContactResult
 from tissue.contact.placement import first_contact_pose
 from tissue.contact.prescribed import PrescribedParams
+from tissue.contact.stability import StabilityMonitor
 from tissue.errors import ConfigError, TissueInputError
 from tissue.material import NeoHookean, TissueMaterials
 from tissue.mesh import TetMesh
@@ -82,8 +83,16 @@ def run_compression(
     stops: list[Waypoint],
     speed_m_s: float,
     progress: bool = False,
+    monitor: StabilityMonitor | None = None,
 ) -> dict[str, Any]:
-    """Drive ``model`` through the waypoints; returns the JSON-ready record."""
+    """Drive ``model`` through the waypoints; returns the JSON-ready record.
+
+    With a ``monitor`` the run stops at the first unstable step (the step is recorded) and
+    the record gains ``instability`` ({step, kind, detail}, or None) and
+    ``stability_percent``: the share of the path's motion steps completed before it (the
+    paper's stability metric; a failure while settling at a depth counts as failing on
+    that depth's last motion step).
+    """
     if not (np.isfinite(speed_m_s) and speed_m_s > 0):
         raise ConfigError(f"--speed must be a positive number of m/s; got {speed_m_s!r}")
     dt = model.dt
@@ -96,30 +105,47 @@ def run_compression(
         )
     steps: list[dict[str, Any]] = []
     levels: list[dict[str, Any]] = []
+    counts = _motion_step_counts(start, stops, speed_m_s * dt)
+    motion_done = 0
+    instability: dict[str, Any] | None = None
+
+    def take(pose: NDArray[np.float64], pose_quat: NDArray[np.float64]) -> ContactResult:
+        nonlocal instability
+        result = model.step(pose, pose_quat)
+        steps.append(_step_record(result, pose))
+        if monitor is not None:
+            found = monitor.check(result, model.node_positions, pose)
+            if found is not None:
+                instability = {"step": len(steps) - 1, "kind": found.kind, "detail": found.detail}
+        return result
+
     position, quat = start.position.copy(), start.quat_wxyz.copy()
     level_status = StepStatus.OK
-    for stop in stops:
-        distance = float(np.linalg.norm(stop.position - position))
-        count = max(1, math.ceil(distance / (speed_m_s * dt) - 1e-9))
+    for stop, count in zip(stops, counts, strict=True):
         begin, begin_quat = position, quat
         for i in range(1, count + 1):
             fraction = i / count
             pose = begin + fraction * (stop.position - begin)
-            pose_quat = _slerp(begin_quat, stop.quat_wxyz, fraction)
-            result = model.step(pose, pose_quat)
-            steps.append(_step_record(result, pose))
+            result = take(pose, _slerp(begin_quat, stop.quat_wxyz, fraction))
             level_status = worst(level_status, result.status)
+            if instability is not None:
+                break
+            motion_done += 1
+        if instability is not None:
+            break
         position, quat = stop.position.copy(), stop.quat_wxyz.copy()
         if stop.depth_m is None:
             continue
         for _ in range(MAX_SETTLE_STEPS):
             previous = model.node_positions.copy()
-            result = model.step(position, quat)
-            steps.append(_step_record(result, position))
+            result = take(position, quat)
             level_status = worst(level_status, result.status)
             speed = float(np.max(np.abs(model.node_positions - previous))) / dt
-            if speed < SETTLED_SPEED_M_S or result.status.is_failure:
+            if speed < SETTLED_SPEED_M_S or result.status.is_failure or instability is not None:
                 break
+        if instability is not None:
+            motion_done -= 1  # the depth was reached but never held
+            break
         levels.append(_level_record(result, stop.depth_m, model, level_status))
         if progress:
             print(
@@ -128,7 +154,24 @@ def run_compression(
                 flush=True,
             )
         level_status = StepStatus.OK
-    return {"steps": steps, "levels": levels}
+    record: dict[str, Any] = {"steps": steps, "levels": levels}
+    if monitor is not None:
+        record["instability"] = instability
+        record["stability_percent"] = 100.0 * max(motion_done, 0) / max(sum(counts), 1)
+        if progress and instability is not None:
+            print(f"unstable at step {instability['step']}: {instability['detail']}", flush=True)
+    return record
+
+
+def _motion_step_counts(start: Waypoint, stops: list[Waypoint], step_m: float) -> list[int]:
+    """Steps to each waypoint from the previous one at ``step_m`` per step (>= 1 each)."""
+    counts = []
+    position = start.position
+    for stop in stops:
+        distance = float(np.linalg.norm(stop.position - position))
+        counts.append(max(1, math.ceil(distance / step_m - 1e-9)))
+        position = stop.position
+    return counts
 
 
 def _step_record(result: ContactResult, position: NDArray[np.float64]) -> dict[str, Any]:

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from agents.compress import build_model, plan_scene, plan_straight, run_compression, write_json
+from tissue.contact.stability import StabilityMonitor
 from tissue.errors import ConfigError
 from tissue.mesh import TetMesh
 from tissue.probe import ProbeShape, parse_probe_spec
@@ -90,7 +91,8 @@ def run_compress_command(args: argparse.Namespace) -> int:
         f"compress: {mesh.name} ({mesh.tet_count} tets), probe {shape.name}, "
         f"method {args.method}, mode {args.mode}, {len(stops)} levels"
     )
-    record = run_compression(model, start, stops, args.speed, progress=True)
+    monitor = StabilityMonitor(args.method, mesh.nodes, start.position)
+    record = run_compression(model, start, stops, args.speed, progress=True, monitor=monitor)
     record["config"] = {
         "mesh": mesh.name,
         "tets": mesh.tet_count,

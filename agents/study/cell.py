@@ -1,0 +1,89 @@
+"""One cell of the study: build the model, run the experiment, summarise it as a record."""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+from typing import Any
+
+import numpy as np
+
+from agents.compress import build_model, run_compression
+from agents.study.scenes import StudyScene, open_scene
+from agents.study.spec import Cell, StudyConfig, StudySpec
+from tissue.contact.base import ContactMethod
+from tissue.contact.stability import StabilityMonitor
+from tissue.probe import parse_probe_spec
+
+# Scenes opened in this process (a worker runs many cells of one scene).
+_SCENES: dict[str, StudyScene] = {}
+
+
+def scene_for(name: str) -> StudyScene:
+    if name not in _SCENES:
+        _SCENES[name] = open_scene(name)
+    return _SCENES[name]
+
+
+def run_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
+    """Run one experiment; returns its ``results.jsonl`` record (errors are added later).
+
+    The record holds the cell, the mesh size, the tracked point of the cell's lesion at rest
+    and after settling at each depth reached [m], the normal force [N] and penetration [m]
+    there, a summary of the per-step compute times [ms], the stability percentage and the
+    instability met (None when the experiment completed).
+    """
+    started = time.perf_counter()
+    scene = scene_for(spec.scene)
+    mesh = scene.mesh(cell.level)
+    shape = parse_probe_spec("face")
+    prescribed = cell.method is ContactMethod.PRESCRIBED
+    online = prescribed and cell.config is StudyConfig.ROBUST
+    node_set = scene.prescribed_nodes(mesh, cell.lesion) if prescribed and not online else None
+    model = build_model(
+        mesh, shape, cell.method.value, cell.config.value, None, None, online, node_set
+    )
+    start, stops = scene.path(mesh, shape, cell.lesion, spec.depths_m)
+    monitor = StabilityMonitor(cell.method, mesh.nodes, start.position)
+    run = run_compression(model, start, stops, spec.speed_m_s, monitor=monitor)
+    assert mesh.landmarks is not None
+    tracked = mesh.landmarks.names.index(scene.landmark_name(cell.lesion))
+    step_ms = np.array([step["compute_ms"] for step in run["steps"]], dtype=np.float64)
+    instability = run["instability"]
+    return {
+        "key": cell.key,
+        "scene": scene.name,
+        "config": cell.config.value,
+        "method": cell.method.value,
+        "level": cell.level,
+        "tets": mesh.tet_count,
+        "nodes": mesh.node_count,
+        "lesion": cell.lesion,
+        "depths_m": [stop.depth_m for stop in stops],
+        "rest_tracked_m": mesh.landmarks.rest_positions[tracked].tolist(),
+        "tracked_m": [level["landmarks"][tracked] for level in run["levels"]],
+        "force_normal_n": [level["force_normal_n"] for level in run["levels"]],
+        "penetration_max_m": [level["penetration_max_m"] for level in run["levels"]],
+        "step_ms": summarise_times(step_ms),
+        "stability_percent": run["stability_percent"],
+        "status": "ok" if instability is None else "unstable",
+        "instability": instability,
+        "wall_s": time.perf_counter() - started,
+        "host": platform.node(),
+        "pid": os.getpid(),
+    }
+
+
+def summarise_times(step_ms: np.ndarray) -> dict[str, float | int]:
+    """Median, mean, 10th/90th percentile, max and count of per-step times [ms]."""
+    if step_ms.size == 0:
+        return {"count": 0}
+    return {
+        "median": float(np.median(step_ms)),
+        "mean": float(np.mean(step_ms)),
+        "p10": float(np.percentile(step_ms, 10)),
+        "p90": float(np.percentile(step_ms, 90)),
+        "max": float(np.max(step_ms)),
+        "count": int(step_ms.size),
+    }

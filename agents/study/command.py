@@ -1,0 +1,115 @@
+"""Argument handling of ``probegym study`` (the work is in :mod:`agents.study.runner`)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from agents.study.spec import (
+    DEFAULT_DEPTHS_M,
+    QUICK_LESIONS,
+    QUICK_LEVELS,
+    QUICK_REFERENCE_LEVEL,
+    StudySpec,
+)
+from tissue.contact.base import ContactMethod
+from tissue.errors import ConfigError
+from tissue.phantom import PHANTOM_LEVELS
+
+
+def add_study_arguments(study: argparse.ArgumentParser) -> None:
+    """The options of ``probegym study``."""
+    study.add_argument("--methods", default="lm,penalty,prescribed,pbd", help="comma-separated")
+    study.add_argument(
+        "--levels",
+        default=None,
+        help="comma-separated tet-count levels (and 'published' with --scene paper); "
+        "default all 9 (--quick: 623..4126)",
+    )
+    study.add_argument("--lesions", default=None, help="comma-separated numbers; default all")
+    study.add_argument(
+        "--scene", default="synthetic", help="synthetic | paper | DIR (published layout)"
+    )
+    study.add_argument(
+        "--depths", default=None, help="D1,D2,... [m] past first contact (default 10,20,25,30 mm)"
+    )
+    study.add_argument("--config", default="paper,robust", help="paper | robust | paper,robust")
+    study.add_argument("--reference-level", default=None, help="level of the converged reference")
+    study.add_argument("--measured", type=Path, default=None, help="CSV of measured positions")
+    study.add_argument("--speed", type=float, default=0.01, help="probe speed [m/s]")
+    study.add_argument("--workers", type=int, default=1, help="local worker processes")
+    study.add_argument("--ray", default=None, help="Ray address (auto, local or host:port)")
+    study.add_argument("--out", type=Path, default=Path("study"), help="output directory")
+    study.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"levels {','.join(map(str, QUICK_LEVELS))}, lesions "
+        f"{','.join(map(str, QUICK_LESIONS))}, reference {QUICK_REFERENCE_LEVEL} (about 5 min)",
+    )
+    study.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _split(value: str, what: str) -> list[str]:
+    parts = [part.strip() for part in value.split(",") if part.strip()]
+    if not parts:
+        raise ConfigError(f"--{what} is empty; give a comma-separated list")
+    return parts
+
+
+def spec_from_args(args: argparse.Namespace) -> StudySpec:
+    """Validate every argument into a :class:`StudySpec` before any work starts."""
+    default_levels: tuple[int | str, ...] = QUICK_LEVELS if args.quick else PHANTOM_LEVELS
+    levels = _split(args.levels, "levels") if args.levels else list(default_levels)
+    if args.lesions:
+        try:
+            lesions: tuple[int, ...] | None = tuple(int(v) for v in _split(args.lesions, "lesions"))
+        except ValueError:
+            raise ConfigError(f"--lesions are numbers; got {args.lesions!r}") from None
+    else:
+        lesions = QUICK_LESIONS if args.quick and args.scene == "synthetic" else None
+    if args.depths is not None:
+        if args.scene != "synthetic":
+            raise ConfigError(
+                "--depths applies to --scene synthetic; the published poses fix their own"
+            )
+        try:
+            depths = tuple(float(v) for v in _split(args.depths, "depths"))
+        except ValueError:
+            raise ConfigError(f"--depths are numbers in metres; got {args.depths!r}") from None
+    else:
+        depths = DEFAULT_DEPTHS_M
+    reference = args.reference_level or (
+        QUICK_REFERENCE_LEVEL if args.quick else PHANTOM_LEVELS[-1]
+    )
+    return StudySpec(
+        scene=args.scene,
+        methods=tuple(ContactMethod.parse(m) for m in _split(args.methods, "methods")),
+        levels=tuple(levels),  # type: ignore[arg-type]  # parsed in __post_init__
+        lesions=lesions,
+        configs=tuple(_split(args.config, "config")),  # type: ignore[arg-type]
+        depths_m=depths,
+        reference_level=reference,
+        speed_m_s=args.speed,
+        measured_csv=args.measured,
+    )
+
+
+def run_study_command(args: argparse.Namespace) -> int:
+    """Validate, run, and say where the outputs are; returns the exit code."""
+    spec = spec_from_args(args)
+    if args.workers < 1:
+        raise ConfigError(f"--workers must be >= 1; got {args.workers}")
+    from agents.study.runner import run_study
+
+    outcome = run_study(
+        spec, args.out, workers=args.workers, ray_address=args.ray, progress=not args.no_progress
+    )
+    unstable = sum(1 for record in outcome.records if record["status"] != "ok")
+    print(
+        f"study: {outcome.ran_now} cells run now, {outcome.skipped} from an earlier run, "
+        f"{unstable} unstable; {outcome.references_computed} references computed"
+    )
+    for name in ("results.jsonl", "stability.md", "errors.png", "times.png",
+                 "accuracy_vs_time.png", "report.md", "report.html"):  # fmt: skip
+        print(f"written: {args.out / name}")
+    return 0

@@ -1,0 +1,462 @@
+"""The study's tables, figures and report, written from ``results.jsonl``.
+
+- ``stability.md``: the paper's Table 1 -- mean, median and range of the stability metric
+  per method and level -- one column group per configuration.
+- ``errors.png``: the paper's Fig. 2 -- localisation errors (eq. 12) per method and level;
+  as the paper, only depths that every method of the configuration simulated stably count,
+  so a method that survives longer is not judged on more (harder) depths.
+- ``times.png``: the paper's Fig. 3 -- compute time per step (each cell's median), log
+  scale, lines at h = 20 ms (real time) and 40 ms (25 fps).
+- ``accuracy_vs_time.png``: median error against median time per step, one point per
+  method x level x configuration, the Pareto front (no other point both faster and more
+  accurate) marked.
+- ``report.md`` and ``report.html``: all of it with the run's configuration and machine.
+
+PBD has no paper/robust variants: its cells run once and appear in every column group.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import os
+import platform
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents.study.spec import StudySpec, level_label
+
+METHOD_ORDER = ("lm", "penalty", "prescribed", "pbd")
+METHOD_LABEL = {"lm": "LM", "penalty": "Penalty", "prescribed": "PrescrDispl", "pbd": "PBD"}
+METHOD_COLOUR = {"lm": "tab:blue", "penalty": "tab:orange", "prescribed": "tab:green",
+                 "pbd": "tab:red"}  # fmt: skip
+
+
+def _by_config(records: list[dict[str, Any]], configs: list[str]) -> dict[str, list[dict]]:
+    """Records per configuration column group; PBD's single run joins every group."""
+    groups: dict[str, list[dict[str, Any]]] = {config: [] for config in configs}
+    for record in records:
+        if record["method"] == "pbd":
+            for config in configs:
+                groups[config].append(record)
+        elif record["config"] in groups:
+            groups[record["config"]].append(record)
+    return groups
+
+
+def _methods(records: list[dict[str, Any]]) -> list[str]:
+    present = {record["method"] for record in records}
+    return [m for m in METHOD_ORDER if m in present]
+
+
+def _levels(records: list[dict[str, Any]]) -> list[int]:
+    return sorted({record["level"] for record in records}, key=lambda v: (v != 0, v))
+
+
+def _tets(records: list[dict[str, Any]], level: int) -> int:
+    return next(record["tets"] for record in records if record["level"] == level)
+
+
+# ---------------------------------------------------------------------- stability
+
+
+def stability_table(records: list[dict[str, Any]], configs: list[str]) -> str:
+    """Table 1 in Markdown: mean / median / range of stability [%] per method and level."""
+    groups = _by_config(records, configs)
+    methods = _methods(records)
+    head = ["Mesh level", "Tets"]
+    for config in configs:
+        for method in methods:
+            head += [f"{config} {METHOD_LABEL[method]} mean", "median", "range"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for level in _levels(records):
+        row = [level_label(level), f"{_tets(records, level):,}"]
+        for config in configs:
+            for method in methods:
+                values = [
+                    r["stability_percent"]
+                    for r in groups[config]
+                    if r["level"] == level and r["method"] == method
+                ]
+                if values:
+                    row += [
+                        f"{np.mean(values):.0f}",
+                        f"{np.median(values):.0f}",
+                        f"{np.min(values):.0f}-{np.max(values):.0f}",
+                    ]
+                else:
+                    row += ["", "", ""]
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------- errors
+
+
+def valid_errors(
+    records: list[dict[str, Any]], configs: list[str]
+) -> dict[str, dict[tuple[str, int], list[float]]]:
+    """Per configuration, errors [m] per (method, level) on the depths every method reached.
+
+    A depth of a (level, lesion) counts only if every method of the configuration has an
+    error there (the paper's "valid" deformations).
+    """
+    out: dict[str, dict[tuple[str, int], list[float]]] = {}
+    for config, group in _by_config(records, configs).items():
+        methods = _methods(group)
+        by_case: dict[tuple[int, int], dict[str, list[float | None]]] = defaultdict(dict)
+        for record in group:
+            by_case[(record["level"], record["lesion"])][record["method"]] = record.get(
+                "errors_m", []
+            )
+        errors: dict[tuple[str, int], list[float]] = defaultdict(list)
+        for (level, _lesion), per_method in by_case.items():
+            if set(per_method) != set(methods):
+                continue
+            depth_count = min(len(values) for values in per_method.values())
+            for index in range(depth_count):
+                row = [per_method[m][index] for m in methods]
+                if any(value is None for value in row):
+                    continue
+                for method, value in zip(methods, row, strict=True):
+                    assert value is not None
+                    errors[(method, level)].append(value)
+        out[config] = dict(errors)
+    return out
+
+
+def _median_times(
+    records: list[dict[str, Any]], configs: list[str]
+) -> dict[str, dict[tuple[str, int], list[float]]]:
+    out: dict[str, dict[tuple[str, int], list[float]]] = {}
+    for config, group in _by_config(records, configs).items():
+        times: dict[tuple[str, int], list[float]] = defaultdict(list)
+        for record in group:
+            if record["step_ms"].get("count", 0):
+                times[(record["method"], record["level"])].append(record["step_ms"]["median"])
+        out[config] = dict(times)
+    return out
+
+
+def summary_rows(records: list[dict[str, Any]], configs: list[str]) -> list[dict[str, Any]]:
+    """One row per configuration x method x level: median error [mm], median step [ms],
+    mean stability [%], cell count."""
+    errors = valid_errors(records, configs)
+    times = _median_times(records, configs)
+    groups = _by_config(records, configs)
+    rows = []
+    for config in configs:
+        for method in _methods(groups[config]):
+            for level in _levels(groups[config]):
+                cells = [r for r in groups[config] if r["method"] == method and r["level"] == level]
+                if not cells:
+                    continue
+                error = errors[config].get((method, level), [])
+                time = times[config].get((method, level), [])
+                rows.append(
+                    {
+                        "config": config,
+                        "method": method,
+                        "level": level,
+                        "tets": cells[0]["tets"],
+                        "cells": len(cells),
+                        "median_error_mm": float(np.median(error) * 1e3) if error else None,
+                        "median_step_ms": float(np.median(time)) if time else None,
+                        "mean_stability_percent": float(
+                            np.mean([c["stability_percent"] for c in cells])
+                        ),
+                    }
+                )
+    return rows
+
+
+def pareto_front(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of the points (time, error) that no other point beats in both (ties kept)."""
+    front = []
+    for i, (time_i, error_i) in enumerate(points):
+        dominated = any(
+            time_j <= time_i and error_j <= error_i and (time_j < time_i or error_j < error_i)
+            for j, (time_j, error_j) in enumerate(points)
+            if j != i
+        )
+        if not dominated:
+            front.append(i)
+    return front
+
+
+# ---------------------------------------------------------------------- figures
+
+
+def _plot_boxes(
+    path: Path,
+    data: dict[str, dict[tuple[str, int], list[float]]],
+    records: list[dict[str, Any]],
+    ylabel: str,
+    scale: float,
+    log: bool,
+    hlines: list[tuple[float, str, str]],
+) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    configs = list(data)
+    levels = _levels(records)
+    methods = _methods(records)
+    figure, axes = plt.subplots(
+        1, len(configs), figsize=(max(6, 1.6 * len(levels)) * len(configs) / 1.3, 4.2),
+        squeeze=False, sharey=True,
+    )  # fmt: skip
+    width = 0.8 / max(1, len(methods))
+    for axis, config in zip(axes[0], configs, strict=True):
+        for m, method in enumerate(methods):
+            positions, values = [], []
+            for l_index, level in enumerate(levels):
+                sample = data[config].get((method, level), [])
+                if sample:
+                    positions.append(l_index + (m - (len(methods) - 1) / 2) * width)
+                    values.append(np.asarray(sample) * scale)
+            if values:
+                boxes = axis.boxplot(
+                    values, positions=positions, widths=width * 0.9, patch_artist=True,
+                    showfliers=True, manage_ticks=False,
+                )  # fmt: skip
+                for box in boxes["boxes"]:
+                    box.set_facecolor(METHOD_COLOUR[method])
+                    box.set_alpha(0.6)
+            axis.plot([], [], color=METHOD_COLOUR[method], lw=6, alpha=0.6,
+                      label=METHOD_LABEL[method])  # fmt: skip
+        for value, colour, label in hlines:
+            axis.axhline(value, color=colour, lw=1, ls="--", label=label)
+        axis.set_xticks(range(len(levels)))
+        axis.set_xticklabels(
+            [f"{_tets(records, level):,}" for level in levels], rotation=45, fontsize=8
+        )
+        axis.set_xlabel("tetrahedra")
+        axis.set_title(f"{config} configuration")
+        if log:
+            axis.set_yscale("log")
+        axis.grid(axis="y", alpha=0.3)
+    axes[0][0].set_ylabel(ylabel)
+    axes[0][-1].legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+
+
+def plot_accuracy_vs_time(path: Path, rows: list[dict[str, Any]]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    usable = [r for r in rows if r["median_error_mm"] is not None and r["median_step_ms"]]
+    figure, axis = plt.subplots(figsize=(7.5, 5))
+    markers = {"paper": "o", "robust": "s"}
+    for row in usable:
+        axis.scatter(
+            row["median_step_ms"], row["median_error_mm"], color=METHOD_COLOUR[row["method"]],
+            marker=markers.get(row["config"], "^"), s=20 + 12 * np.log10(row["tets"]),
+            alpha=0.75, edgecolors="none",
+        )  # fmt: skip
+    points = [(r["median_step_ms"], r["median_error_mm"]) for r in usable]
+    front = sorted(pareto_front(points), key=lambda i: points[i][0])
+    if front:
+        axis.plot(
+            [points[i][0] for i in front], [points[i][1] for i in front], "k--", lw=1,
+            label="Pareto front",
+        )  # fmt: skip
+        for i in front:
+            row = usable[i]
+            axis.annotate(
+                f"{METHOD_LABEL[row['method']]} {row['config']} {row['tets']:,}",
+                points[i], fontsize=7, xytext=(4, 4), textcoords="offset points",
+            )  # fmt: skip
+    for method in METHOD_ORDER:
+        axis.scatter([], [], color=METHOD_COLOUR[method], label=METHOD_LABEL[method])
+    for config, marker in markers.items():
+        axis.scatter([], [], color="grey", marker=marker, label=config)
+    axis.axvline(20, color="tab:blue", lw=1, ls=":")
+    axis.axvline(40, color="black", lw=1, ls=":")
+    axis.set_xscale("log")
+    axis.set_xlabel("median compute time per step [ms] (h = 20 ms dotted blue, 25 fps black)")
+    axis.set_ylabel("median localisation error [mm]")
+    axis.set_title("What accuracy costs in time (marker size grows with the tet count)")
+    axis.grid(alpha=0.3)
+    axis.legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+
+
+# ---------------------------------------------------------------------- report
+
+
+def _machine() -> dict[str, Any]:
+    import numpy
+
+    return {
+        "host": platform.node(),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "python": platform.python_version(),
+        "numpy": numpy.__version__,
+    }
+
+
+def write_report(
+    out: Path,
+    spec: StudySpec,
+    records: list[dict[str, Any]],
+    references: dict[int, dict[str, Any]],
+) -> None:
+    """Write every output file of the study into ``out`` (see the module docstring)."""
+    configs = [c.value for c in spec.configs]
+    wanted = {(c, m.value) for c in configs for m in spec.methods}
+    records = [
+        r for r in records
+        if r["level"] in spec.levels
+        and (r["method"] == "pbd" or (r["config"], r["method"]) in wanted)
+        and (spec.lesions is None or r["lesion"] in spec.lesions)
+    ]  # fmt: skip
+    stability = stability_table(records, configs) if records else "(no cells)\n"
+    (out / "stability.md").write_text(
+        "# Stability (% of the experiment completed before an instability)\n\n" + stability
+    )
+    if not records:
+        return
+    errors = valid_errors(records, configs)
+    pbd = [v for config in errors for (m, _), vals in errors[config].items() if m == "pbd"
+           for v in vals]  # fmt: skip
+    hlines = [(float(np.median(pbd)) * 1e3, "red", "PBD median")] if pbd else []
+    _plot_boxes(out / "errors.png", errors, records, "localisation error [mm]", 1e3, False,
+                hlines)  # fmt: skip
+    times = _median_times(records, configs)
+    _plot_boxes(out / "times.png", times, records, "compute time per step [ms]", 1.0, True,
+                [(20.0, "tab:blue", "h = 20 ms"), (40.0, "black", "25 fps")])  # fmt: skip
+    rows = summary_rows(records, configs)
+    plot_accuracy_vs_time(out / "accuracy_vs_time.png", rows)
+    (out / "summary.json").write_text(json.dumps(rows, indent=1))
+    _write_markdown_and_html(out, spec, records, references, stability, rows)
+
+
+def _write_markdown_and_html(
+    out: Path,
+    spec: StudySpec,
+    records: list[dict[str, Any]],
+    references: dict[int, dict[str, Any]],
+    stability: str,
+    rows: list[dict[str, Any]],
+) -> None:
+    lines = [
+        "# probegym compression study",
+        "",
+        "Reproduces the compression study of Tagliabue et al. (2020): the probe on the skin "
+        "above each lesion, normal to the surface, at "
+        f"{spec.speed_m_s * 1e3:g} mm/s with h = 20 ms, through the depths, settling at each.",
+        "",
+        "## Configuration",
+        "",
+        "```json",
+        json.dumps(spec.as_json(), indent=1),
+        "```",
+        "",
+        "## Machine",
+        "",
+        "```json",
+        json.dumps(_machine(), indent=1),
+        "```",
+        "",
+        "## Stability (paper Table 1)",
+        "",
+        stability,
+        "## Accuracy and time",
+        "",
+        "Median localisation error (eq. 12, valid depths only) and median compute time per "
+        "step, per configuration, method and level.",
+        "",
+        "| config | method | level | tets | cells | median error [mm] | median step [ms] "
+        "| mean stability [%] |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        error = "" if row["median_error_mm"] is None else f"{row['median_error_mm']:.2f}"
+        time = "" if row["median_step_ms"] is None else f"{row['median_step_ms']:.2f}"
+        lines.append(
+            f"| {row['config']} | {METHOD_LABEL[row['method']]} | {level_label(row['level'])} "
+            f"| {row['tets']:,} | {row['cells']} | {error} | {time} "
+            f"| {row['mean_stability_percent']:.0f} |"
+        )
+    lines += ["", "![errors](errors.png)", "", "![times](times.png)", "",
+              "![accuracy vs time](accuracy_vs_time.png)", "", "## Reference", ""]  # fmt: skip
+    if references:
+        lines += ["| lesion | level | tets | depths reached | status | wall [s] |",
+                  "|---|---|---|---|---|---|"]  # fmt: skip
+        for lesion, ref in sorted(references.items()):
+            status = "ok" if ref["instability"] is None else ref["instability"]["kind"]
+            lines.append(
+                f"| {lesion} | {ref['level_label']} | {ref['tets']:,} | "
+                f"{len(ref['tracked_m'])}/{len(ref['depths_m'])} | {status} "
+                f"| {ref['wall_s']:.1f} |"
+            )
+    else:
+        lines.append("Scored against measured positions (--measured).")
+    unstable = [r for r in records if r["instability"] is not None]
+    lines += ["", "## Instabilities", ""]
+    if unstable:
+        lines += ["| cell | stability [%] | kind | detail |", "|---|---|---|---|"]
+        for record in unstable:
+            lines.append(
+                f"| {record['key']} | {record['stability_percent']:.0f} | "
+                f"{record['instability']['kind']} | {record['instability']['detail']} |"
+            )
+    else:
+        lines.append("None: every cell completed its experiment.")
+    markdown = "\n".join(lines) + "\n"
+    (out / "report.md").write_text(markdown)
+    (out / "report.html").write_text(_markdown_to_html(markdown))
+
+
+def _markdown_to_html(markdown: str) -> str:
+    """A small converter for the report's own Markdown (headings, tables, code, images)."""
+    body: list[str] = []
+    in_code = in_table = False
+    for line in markdown.splitlines():
+        if line.startswith("```"):
+            body.append("</pre>" if in_code else "<pre>")
+            in_code = not in_code
+            continue
+        if in_code:
+            body.append(html.escape(line))
+            continue
+        if line.startswith("|"):
+            cells = [html.escape(c.strip()) for c in line.strip("|").split("|")]
+            if set("".join(cells)) <= {"-"}:
+                continue
+            if not in_table:
+                body.append("<table border=1 cellspacing=0 cellpadding=3>")
+                in_table = True
+            body.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
+            continue
+        if in_table:
+            body.append("</table>")
+            in_table = False
+        if line.startswith("#"):
+            depth = len(line) - len(line.lstrip("#"))
+            body.append(f"<h{depth}>{html.escape(line.lstrip('#').strip())}</h{depth}>")
+        elif line.startswith("!["):
+            alt, src = line[2:].split("](")
+            body.append(f'<p><img src="{html.escape(src.rstrip(")"))}" alt="{html.escape(alt)}">')
+        elif line:
+            body.append(f"<p>{html.escape(line)}</p>")
+    if in_table:
+        body.append("</table>")
+    return (
+        "<!doctype html><html><head><meta charset='utf-8'><title>probegym study</title>"
+        "</head><body>\n" + "\n".join(body) + "\n</body></html>\n"
+    )

@@ -1,0 +1,260 @@
+"""Running a study: references first, then every cell, resumably, locally or on Ray.
+
+``results.jsonl`` in the output directory gets one line per finished cell, appended and
+flushed as it finishes; a rerun with the same directory skips the cells it holds, so a
+killed study loses at most the cells in flight. ``study.json`` records the specification;
+rerunning with different physics (scene, depths, speed, reference) into the same directory
+is refused. Timing: with ``workers`` > 1 the cells share the machine's cores, so their
+per-step times are comparable within the run but slower than a one-worker run's.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable, Iterator
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents.study.cell import run_cell, scene_for
+from agents.study.reference import load_or_compute_reference, read_measured_csv
+from agents.study.spec import Cell, StudySpec, level_label
+from tissue.errors import ConfigError
+
+RESULTS_FILE = "results.jsonl"
+SPEC_FILE = "study.json"
+REFERENCES_FILE = "references.json"
+# Settings that change the physics of a cell: a rerun must keep them.
+_PHYSICS_KEYS = ("scene", "depths_m", "speed_m_s", "reference_level", "measured_csv")
+
+
+@dataclass
+class StudyOutcome:
+    """What a run did: the records (old and new), the references, the cells run now."""
+
+    records: list[dict[str, Any]]
+    references: dict[int, dict[str, Any]]
+    ran_now: int
+    skipped: int
+    references_computed: int
+
+
+def read_results(path: Path) -> list[dict[str, Any]]:
+    """The records of ``results.jsonl``; a line cut short by a kill is ignored."""
+    if not path.exists():
+        return []
+    records = []
+    for line in path.read_text().splitlines():
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    return records
+
+
+def _append(path: Path, record: dict[str, Any]) -> None:
+    # A kill can leave a line without its newline: start a fresh line after it.
+    cut_short = False
+    if path.exists() and path.stat().st_size > 0:
+        with path.open("rb") as existing:
+            existing.seek(-1, os.SEEK_END)
+            cut_short = existing.read(1) != b"\n"
+    with path.open("a") as file:
+        file.write(("\n" if cut_short else "") + json.dumps(record) + "\n")
+        file.flush()
+        os.fsync(file.fileno())
+
+
+def _check_resume(spec: StudySpec, out: Path) -> None:
+    spec_path = out / SPEC_FILE
+    if spec_path.exists():
+        previous = json.loads(spec_path.read_text())
+        current = spec.as_json()
+        changed = [key for key in _PHYSICS_KEYS if previous.get(key) != current.get(key)]
+        if changed:
+            raise ConfigError(
+                f"{out} holds a study with different {', '.join(changed)} "
+                f"({', '.join(f'{k}={previous.get(k)!r}' for k in changed)}); "
+                "give a new --out or the same settings"
+            )
+    spec_path.write_text(json.dumps(spec.as_json(), indent=2))
+
+
+def tracked_errors(
+    record: dict[str, Any], truth: list[list[float] | None] | None
+) -> list[float | None]:
+    """Eq. (12) per depth reached: distance [m] between the cell's and the true tracked
+    point; None where the truth has no such depth."""
+    errors: list[float | None] = []
+    for index, point in enumerate(record["tracked_m"]):
+        true_point = truth[index] if truth is not None and index < len(truth) else None
+        if true_point is None:
+            errors.append(None)
+        else:
+            errors.append(float(np.linalg.norm(np.subtract(point, true_point))))
+    return errors
+
+
+def run_study(
+    spec: StudySpec,
+    out: Path,
+    workers: int = 1,
+    ray_address: str | None = None,
+    progress: bool = True,
+    log: Callable[[str], None] = print,
+) -> StudyOutcome:
+    """Run (or finish) the study into ``out`` and write its report.
+
+    Args:
+        spec: what to run.
+        out: output directory (created).
+        workers: local processes running cells (1: in this process).
+        ray_address: run on this Ray cluster instead (``auto``, ``local`` or an address).
+        progress: show a progress bar with an ETA.
+        log: where status lines go.
+    """
+    if workers < 1:
+        raise ConfigError(f"--workers must be >= 1; got {workers}")
+    scene = scene_for(spec.scene)
+    lesions = spec.lesions if spec.lesions is not None else scene.lesion_ids
+    unknown = sorted(set(lesions) - set(scene.lesion_ids))
+    if unknown:
+        raise ConfigError(
+            f"lesion(s) {unknown} not in the {scene.name} scene; choose from "
+            f"{list(scene.lesion_ids)}"
+        )
+    measured = read_measured_csv(spec.measured_csv) if spec.measured_csv else None
+    out.mkdir(parents=True, exist_ok=True)
+    _check_resume(spec, out)
+    results_path = out / RESULTS_FILE
+    records = read_results(results_path)
+    done = {record["key"] for record in records}
+    cells = [cell for cell in spec.cells(lesions) if cell.key not in done]
+
+    # Meshes are generated (or read from the cache) here, once, before workers start.
+    needed = sorted({cell.level for cell in cells} | ({spec.reference_level} if cells else set()))
+    for level in needed:
+        mesh = scene.mesh(level)
+        log(f"mesh {level_label(level)}: {mesh.tet_count} tets, {mesh.node_count} nodes")
+
+    with _executor(workers, ray_address) as submit:
+        references, computed = _references(spec, lesions, measured, submit, log)
+        (out / REFERENCES_FILE).write_text(json.dumps(references, indent=1))
+        truth = {
+            lesion: (
+                [measured[lesion].get(i + 1) for i in range(len(spec.depths_m))]
+                if measured is not None and lesion in measured
+                else (references[lesion]["tracked_m"] if lesion in references else None)
+            )
+            for lesion in lesions
+        }
+        log(f"study: {len(cells)} cells to run, {len(done)} already in {results_path}")
+        bar = _progress_bar(len(cells), progress)
+        window = 1 if workers == 1 and ray_address is None else 2 * workers
+        for record in _run_all(cells, spec, submit, window):
+            record["errors_m"] = tracked_errors(record, truth.get(record["lesion"]))
+            record["truth"] = "measured" if measured is not None else "reference"
+            _append(results_path, record)
+            records.append(record)
+            bar.update(1)
+            bar.set_postfix_str(f"{record['key']} {record['status']}")
+        bar.close()
+
+    from agents.study.report import write_report
+
+    write_report(out, spec, records, references)
+    return StudyOutcome(records, references, len(cells), len(done), computed)
+
+
+def _references(
+    spec: StudySpec,
+    lesions: tuple[int, ...],
+    measured: dict[int, dict[int, list[float]]] | None,
+    submit: Callable[..., Future[Any]],
+    log: Callable[[str], None],
+) -> tuple[dict[int, dict[str, Any]], int]:
+    if measured is not None:
+        log("truth: measured positions from --measured; no reference computed")
+        return {}, 0
+    futures = {lesion: submit(_reference_task, spec, lesion) for lesion in lesions}
+    references, computed = {}, 0
+    for lesion, future in futures.items():
+        record, fresh = future.result()
+        references[lesion] = record
+        computed += int(fresh)
+        log(
+            f"reference lesion {lesion} ({level_label(spec.reference_level)}): "
+            + (f"computed in {record['wall_s']:.1f} s" if fresh else "cached")
+        )
+    return references, computed
+
+
+def _reference_task(spec: StudySpec, lesion: int) -> tuple[dict[str, Any], bool]:
+    return load_or_compute_reference(spec, scene_for(spec.scene), lesion)
+
+
+def _run_all(
+    cells: list[Cell], spec: StudySpec, submit: Callable[..., Future[Any]], window: int
+) -> Iterator[dict[str, Any]]:
+    """Yield each cell's record as it finishes (at most ``window`` cells in flight)."""
+    pending: set[Future[Any]] = set()
+    queue = list(cells)
+    while queue or pending:
+        while queue and len(pending) < window:
+            pending.add(submit(run_cell, spec, queue.pop(0)))
+        finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+        for future in finished:
+            yield future.result()
+
+
+class _Immediate(Future[Any]):
+    """A future already resolved: the one-worker executor runs tasks when submitted."""
+
+    def __init__(self, function: Callable[..., Any], *args: Any) -> None:
+        super().__init__()
+        try:
+            self.set_result(function(*args))
+        except BaseException as error:  # noqa: BLE001 - re-raised by result()
+            self.set_exception(error)
+
+
+class _executor:  # noqa: N801 - used as a context manager like a function
+    """A ``submit(function, *args) -> Future`` for in-process, process-pool or Ray runs."""
+
+    def __init__(self, workers: int, ray_address: str | None) -> None:
+        self.workers = workers
+        self.ray_address = ray_address
+        self._pool: ProcessPoolExecutor | None = None
+
+    def __enter__(self) -> Callable[..., Future[Any]]:
+        if self.ray_address is not None:
+            from agents.study.ray_backend import ray_submitter
+
+            return ray_submitter(self.ray_address, self.workers)
+        if self.workers == 1:
+            return _Immediate
+        import multiprocessing
+
+        from agents.study.worker import init_worker
+
+        self._pool = ProcessPoolExecutor(
+            max_workers=self.workers,
+            mp_context=multiprocessing.get_context("spawn"),
+            initializer=init_worker,
+            initargs=(self.workers,),
+        )
+        return self._pool.submit
+
+    def __exit__(self, *exc: object) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _progress_bar(total: int, enabled: bool) -> Any:
+    from tqdm import tqdm
+
+    return tqdm(total=total, disable=not enabled, unit="cell", desc="cells", dynamic_ncols=True)

@@ -1,0 +1,162 @@
+"""The study's scenes: where its meshes, lesions and probe paths come from.
+
+``synthetic``: the built-in phantom (:mod:`tissue.phantom`) at the 9 levels, lesions 1-10.
+The probe is placed on the skin above each lesion, normal to the surface: the pressing
+direction is the inward normal of the collision surface at the skin point straight above
+the lesion's centre, aimed through the centre; the path is the same in world coordinates
+at every level (every level shares one collision surface and one set of tracked points).
+
+``paper`` (or a directory laid out like ../shared/paper-scene): the published scene, on its
+own mesh (level ``published``) and re-meshed at the 9 levels; lesions are its tumours and
+the path is their real probe poses ``Transform0..4``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from agents.compress import Waypoint, plan_scene, straight_path
+from agents.compress_command import spring_nodes_to_volume
+from agents.study.spec import NATIVE_LEVEL
+from tissue.contact.base import contact_surface
+from tissue.contact.placement import first_contact_pose, ray_surface_hit
+from tissue.errors import ConfigError
+from tissue.mesh import TetMesh
+from tissue.probe import ProbeShape
+
+#: Where ``--scene paper`` looks, in order: this variable, then ``shared/paper-scene`` beside
+#: the checkout, then under the working directory.
+PAPER_SCENE_ENV_VAR = "PROBEGYM_PAPER_SCENE"
+# Collision triangles within this distance of the skin point give its normal [m].
+_NORMAL_RADIUS_M = 0.008
+
+
+def default_paper_scene_dir() -> Path:
+    """The published scene's directory (see :data:`PAPER_SCENE_ENV_VAR`)."""
+    candidates = []
+    if os.environ.get(PAPER_SCENE_ENV_VAR):
+        candidates.append(Path(os.environ[PAPER_SCENE_ENV_VAR]))
+    repo = Path(__file__).resolve().parents[2]
+    candidates += [repo.parent / "shared" / "paper-scene", Path.cwd() / "shared" / "paper-scene"]
+    for candidate in candidates:
+        if candidate.is_dir():
+            return candidate
+    raise ConfigError(
+        "--scene paper needs the published scene; none found at "
+        f"{', '.join(str(c) for c in candidates)}. Set {PAPER_SCENE_ENV_VAR} or give --scene DIR"
+    )
+
+
+@dataclass
+class StudyScene:
+    """One scene of the study; see the module docstring.
+
+    Attributes:
+        name: ``synthetic`` or ``paper``.
+        directory: the published scene's directory (None for synthetic).
+        lesion_ids: the scene's lesion numbers (1-based).
+    """
+
+    name: str
+    directory: Path | None
+    lesion_ids: tuple[int, ...]
+    _scene: Any = field(default=None, repr=False)
+
+    # ------------------------------------------------------------------ meshes
+
+    def mesh(self, level: int) -> TetMesh:
+        """The scene's volume mesh at ``level`` (generated and cached on first use)."""
+        if self.directory is None:
+            from tissue.phantom import breast_phantom
+
+            return breast_phantom(level)
+        if level == NATIVE_LEVEL:
+            return self.paper_scene().mesh
+        from tissue.paper_scene import remesh_paper_scene
+
+        return remesh_paper_scene(self.directory, level)
+
+    def paper_scene(self) -> Any:
+        if self._scene is None:
+            from tissue.paper_scene import load_paper_scene
+
+            assert self.directory is not None
+            self._scene = load_paper_scene(self.directory)
+        return self._scene
+
+    def landmark_name(self, lesion: int) -> str:
+        """The landmark tracking ``lesion``."""
+        return f"lesion_{lesion}" if self.directory is None else f"tumor{lesion}"
+
+    def fingerprint(self) -> str:
+        """Changes whenever the scene's data change (keys the reference cache)."""
+        if self.directory is None:
+            from tissue.phantom import GENERATOR_VERSION, PhantomSpec
+
+            return f"synthetic-g{GENERATOR_VERSION}-{PhantomSpec().content_hash()[:16]}"
+        digest = hashlib.sha256()
+        for path in sorted(self.directory.rglob("*")):
+            if path.is_file():
+                digest.update(path.relative_to(self.directory).as_posix().encode())
+                digest.update(path.read_bytes())
+        return f"paper-{digest.hexdigest()[:16]}"
+
+    # ------------------------------------------------------------------ paths
+
+    def path(
+        self, mesh: TetMesh, shape: ProbeShape, lesion: int, depths_m: tuple[float, ...]
+    ) -> tuple[Waypoint, list[Waypoint]]:
+        """The probe's start pose and one waypoint per depth for ``lesion``."""
+        if self.directory is not None:
+            return plan_scene(self.paper_scene().probe_poses[lesion])
+        assert mesh.landmarks is not None and mesh.collision_surface is not None
+        centres = np.asarray(mesh.metadata["lesion_centres_m"], dtype=np.float64)
+        centre = centres[lesion - 1]
+        direction = -skin_normal_above(mesh, centre)
+        surface = contact_surface(mesh)
+        position, quat = first_contact_pose(surface, mesh.nodes, shape, centre, direction)
+        return straight_path(position, quat, direction, list(depths_m))
+
+    def prescribed_nodes(self, mesh: TetMesh, lesion: int) -> tuple[int, ...] | None:
+        """The published a-priori node set of ``lesion`` (None: chosen at first contact)."""
+        if self.directory is None:
+            return None
+        return spring_nodes_to_volume(mesh, self.paper_scene().spring_nodes[lesion])
+
+
+def skin_normal_above(mesh: TetMesh, point: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Outward unit normal of the collision surface where the vertical through ``point``
+    leaves it upwards (area-weighted over the triangles within 8 mm), shape (3,)."""
+    assert mesh.collision_surface is not None
+    vertices = mesh.collision_surface.rest_vertices
+    triangles = mesh.collision_surface.triangles
+    hit = ray_surface_hit(vertices, triangles, np.asarray(point), np.array([0.0, 0.0, 1.0]))
+    if hit is None:
+        raise ConfigError(f"no skin above the point {np.round(point, 4).tolist()}")
+    a, b, c = (vertices[triangles[:, i]] for i in range(3))
+    area_normals = 0.5 * np.cross(b - a, c - a)
+    near = np.linalg.norm((a + b + c) / 3.0 - hit, axis=1) < _NORMAL_RADIUS_M
+    normal = area_normals[near].sum(axis=0)
+    return normal / np.linalg.norm(normal)
+
+
+def open_scene(scene: str) -> StudyScene:
+    """``synthetic``, ``paper`` or a directory; a clear error for anything unreadable."""
+    if scene == "synthetic":
+        return StudyScene("synthetic", None, tuple(range(1, 11)))
+    directory = default_paper_scene_dir() if scene == "paper" else Path(scene)
+    if not directory.is_dir():
+        raise ConfigError(
+            f"--scene {scene!r} is neither 'synthetic', 'paper' nor a readable directory"
+        )
+    from tissue.paper_scene import load_paper_scene
+
+    loaded = load_paper_scene(directory)
+    return StudyScene("paper", directory.resolve(), loaded.tumour_ids, loaded)

@@ -1,0 +1,177 @@
+"""What a compression study runs: its specification and its cells.
+
+A *cell* is one experiment of Tagliabue et al. (2020), section 2.2-3: one contact method,
+one mesh level, one lesion and one configuration; the probe is placed on the skin above the
+lesion and pressed through the increasing depths, settling at each.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from tissue.choices import Choice
+from tissue.contact.base import ContactMethod
+from tissue.errors import ConfigError
+from tissue.phantom import PHANTOM_LEVELS, parse_level
+
+#: The published scene's own volume mesh (9,295 tets), as a level of the study.
+NATIVE_LEVEL = 0
+#: Synthetic default depths past first contact [m]: 10, 20, 25, 30 mm (the published
+#: poses reach 9-29 mm).
+DEFAULT_DEPTHS_M = (0.01, 0.02, 0.025, 0.03)
+#: The probe's speed [m/s] and the tissue step [s], as the paper.
+PAPER_SPEED_M_S = 0.01
+PAPER_DT_S = 0.02
+#: ``--quick``: levels up to 4,126 tets, three lesions; the reference on a level three times
+#: finer than the finest studied (the full study's 176,506-tet reference takes hours).
+QUICK_LEVELS = (623, 1363, 2539, 4126)
+QUICK_LESIONS = (1, 4, 7)
+QUICK_REFERENCE_LEVEL = 12861
+
+
+class StudyConfig(Choice):
+    """How every FE method is solved in a cell.
+
+    ``paper``: as the paper -- one linearised backward-Euler solve per step, CG capped at 25
+    iterations for penalty and prescribed, a direct solver for LM; prescribed displacement
+    moves the node set chosen at first contact (or the published one).
+    ``robust``: Newton with line search to a tolerance, PSD-projected tangents, step
+    subdivision; prescribed displacement updates its node set online each step.
+    PBD has no such choice: it runs once, and its cell is shown in both column groups.
+    """
+
+    PAPER = "paper"
+    ROBUST = "robust"
+
+    @classmethod
+    def noun(cls) -> str:
+        return "configuration"
+
+
+def level_label(level: int) -> str:
+    """How a level is written in tables: ``published`` or its target tet count."""
+    return "published" if level == NATIVE_LEVEL else f"{level:,}"
+
+
+def parse_study_level(value: str | int) -> int:
+    """A ladder level (target tet count) or ``native``/``published`` (the scene's own mesh)."""
+    if isinstance(value, str) and value.strip().lower() in ("native", "published"):
+        return NATIVE_LEVEL
+    return parse_level(value)
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One experiment: a method on a level, pressing above a lesion, in a configuration."""
+
+    config: StudyConfig
+    method: ContactMethod
+    level: int
+    lesion: int
+
+    @property
+    def key(self) -> str:
+        """A stable identifier, the key of ``results.jsonl`` records."""
+        return f"{self.config.value}/{self.method.value}/{self.level}/{self.lesion}"
+
+
+@dataclass(frozen=True)
+class StudySpec:
+    """Everything that decides a study's results (the output directory aside).
+
+    Attributes:
+        scene: ``synthetic`` (the built-in phantom), ``paper`` (../shared/paper-scene) or a
+            directory laid out like it.
+        methods: contact methods to run.
+        levels: mesh levels (target tet counts; :data:`NATIVE_LEVEL` is the published mesh).
+        lesions: lesion numbers (1-based); None: every lesion of the scene.
+        configs: configurations to run.
+        depths_m: depths past first contact [m] (synthetic scene only; the published scene's
+            poses fix its own), increasing.
+        reference_level: the level the converged reference runs on.
+        speed_m_s: probe speed [m/s].
+        measured_csv: measured lesion positions to score against instead of the reference.
+    """
+
+    scene: str = "synthetic"
+    methods: tuple[ContactMethod, ...] = tuple(ContactMethod)
+    levels: tuple[int, ...] = PHANTOM_LEVELS
+    lesions: tuple[int, ...] | None = None
+    configs: tuple[StudyConfig, ...] = (StudyConfig.PAPER, StudyConfig.ROBUST)
+    depths_m: tuple[float, ...] = DEFAULT_DEPTHS_M
+    reference_level: int = PHANTOM_LEVELS[-1]
+    speed_m_s: float = PAPER_SPEED_M_S
+    measured_csv: Path | None = field(default=None)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "methods", tuple(ContactMethod.parse(m) for m in self.methods))
+        object.__setattr__(self, "configs", tuple(StudyConfig.parse(c) for c in self.configs))
+        object.__setattr__(self, "levels", tuple(parse_study_level(v) for v in self.levels))
+        object.__setattr__(self, "reference_level", parse_study_level(self.reference_level))
+        for name in ("methods", "levels", "configs"):
+            values = getattr(self, name)
+            if not values:
+                raise ConfigError(f"the study needs at least one of {name}")
+            if len(set(values)) != len(values):
+                raise ConfigError(f"{name} repeats a value: {list(values)}")
+        if self.lesions is not None:
+            lesions = tuple(int(n) for n in self.lesions)
+            if not lesions or min(lesions) < 1 or len(set(lesions)) != len(lesions):
+                raise ConfigError(f"lesions are distinct numbers from 1; got {list(self.lesions)}")
+            object.__setattr__(self, "lesions", lesions)
+        depths = np.asarray(self.depths_m, dtype=np.float64)
+        if depths.size == 0 or not np.all(np.isfinite(depths)) or np.any(depths <= 0):
+            raise ConfigError(f"--depths must be positive metres; got {list(self.depths_m)}")
+        if np.any(np.diff(depths) <= 0):
+            raise ConfigError(f"--depths must increase; got {list(self.depths_m)}")
+        if depths.max() > 0.1:
+            raise ConfigError(
+                f"--depths are metres; {depths.max():g} m is deeper than the phantom "
+                "(30 mm is 0.03)"
+            )
+        object.__setattr__(self, "depths_m", tuple(float(d) for d in depths))
+        if not (np.isfinite(self.speed_m_s) and self.speed_m_s > 0):
+            raise ConfigError(f"the probe speed must be > 0 m/s; got {self.speed_m_s!r}")
+        if self.scene == "synthetic" and NATIVE_LEVEL in (*self.levels, self.reference_level):
+            raise ConfigError(
+                "the 'published' level is the published scene's own mesh; use it with "
+                "--scene paper or DIR"
+            )
+
+    def cells(self, lesion_ids: tuple[int, ...]) -> list[Cell]:
+        """Every cell, coarse levels first (results arrive early); PBD in one configuration."""
+        cells = []
+        for level in self.levels:
+            for lesion in lesion_ids:
+                for config in self.configs:
+                    for method in self.methods:
+                        if method is ContactMethod.PBD and config is not self.configs[0]:
+                            continue  # PBD has no paper/robust variants
+                        cells.append(Cell(config, method, level, lesion))
+        return cells
+
+    def as_json(self) -> dict[str, object]:
+        return {
+            "scene": self.scene,
+            "methods": [m.value for m in self.methods],
+            "levels": list(self.levels),
+            "lesions": None if self.lesions is None else list(self.lesions),
+            "configs": [c.value for c in self.configs],
+            "depths_m": list(self.depths_m),
+            "reference_level": self.reference_level,
+            "speed_m_s": self.speed_m_s,
+            "measured_csv": None if self.measured_csv is None else str(self.measured_csv),
+        }
+
+
+def quick_spec(scene: str = "synthetic") -> StudySpec:
+    """The README's main command: small levels, all methods, three lesions, both configs."""
+    return StudySpec(
+        scene=scene,
+        levels=QUICK_LEVELS,
+        lesions=QUICK_LESIONS,
+        reference_level=QUICK_REFERENCE_LEVEL,
+    )

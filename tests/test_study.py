@@ -1,0 +1,218 @@
+"""The compression study: outputs, resumability, reference reuse, bad input, Ray."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agents.study.report import pareto_front, valid_errors
+from agents.study.runner import RESULTS_FILE, read_results, run_study
+from agents.study.spec import Cell, StudyConfig, StudySpec
+from tissue.contact.base import ContactMethod
+from tissue.errors import ConfigError
+
+OUTPUTS = (
+    "results.jsonl",
+    "stability.md",
+    "errors.png",
+    "times.png",
+    "accuracy_vs_time.png",
+    "report.md",
+    "report.html",
+)
+# Two coarse levels, two methods, one lesion, both configurations; the reference runs on
+# the finer of the two levels so the test stays a few seconds.
+TINY = StudySpec(
+    methods=(ContactMethod.PRESCRIBED, ContactMethod.PENALTY),
+    levels=(623, 1363),
+    lesions=(4,),
+    reference_level=1363,
+    depths_m=(0.004, 0.008),
+)
+
+
+def _quiet(_: str) -> None:
+    pass
+
+
+@pytest.fixture(scope="module")
+def tiny_study(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, object]:
+    out = tmp_path_factory.mktemp("study")
+    outcome = run_study(TINY, out, progress=False, log=_quiet)
+    return out, outcome
+
+
+def test_tiny_study_writes_every_output_consistently(tiny_study) -> None:
+    out, outcome = tiny_study
+    for name in OUTPUTS:
+        path = out / name
+        assert path.is_file() and path.stat().st_size > 0, name
+    for name in ("errors.png", "times.png", "accuracy_vs_time.png"):
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    records = read_results(out / RESULTS_FILE)
+    expected = {cell.key for cell in TINY.cells((4,))}
+    assert {r["key"] for r in records} == expected and len(records) == len(expected) == 8
+    for record in records:
+        assert record["tets"] > 0 and 0.0 <= record["stability_percent"] <= 100.0
+        assert len(record["errors_m"]) == len(record["tracked_m"]) <= 2
+        assert (record["status"] == "ok") == (record["instability"] is None)
+        if record["status"] == "ok":
+            assert record["stability_percent"] == 100.0 and len(record["tracked_m"]) == 2
+        assert record["step_ms"]["count"] > 0 and record["step_ms"]["median"] > 0
+        # Pressing 4 mm moves the lesion below by millimetres (along the tilted normal),
+        # and the errors against the converged reference are a fraction of that.
+        if record["tracked_m"]:
+            moved = float(
+                np.linalg.norm(np.subtract(record["tracked_m"][0], record["rest_tracked_m"]))
+            )
+            assert 1e-3 < moved < 4e-3
+            assert all(e is not None and e < 0.5 * moved for e in record["errors_m"])
+    stability = (out / "stability.md").read_text()
+    assert "paper PrescrDispl mean" in stability and "robust Penalty mean" in stability
+    rows = [line for line in stability.splitlines() if line.startswith("| 6") or "1,363" in line]
+    assert len(rows) == 2
+    summary = json.loads((out / "summary.json").read_text())
+    assert len(summary) == 2 * 2 * 2  # configs x methods x levels
+    report = (out / "report.md").read_text()
+    assert "errors.png" in report and "Stability" in report and "cpu_count" in report
+    assert "<table" in (out / "report.html").read_text()
+
+
+def test_rerun_skips_finished_cells_and_reuses_the_reference(tiny_study) -> None:
+    out, first = tiny_study
+    assert first.references_computed == 1
+    again = run_study(TINY, out, progress=False, log=_quiet)
+    assert again.ran_now == 0 and again.skipped == 8 and again.references_computed == 0
+    assert len(read_results(out / RESULTS_FILE)) == 8
+
+
+def test_killed_study_resumes_without_redoing_cells(tmp_path: Path) -> None:
+    out = tmp_path / "study"
+    command = [
+        sys.executable, "-m", "agents.cli", "study", "--methods", "prescribed,penalty",
+        "--levels", "623,1363", "--lesions", "4", "--reference-level", "1363",
+        "--depths", "0.004,0.008", "--out", str(out), "--no-progress",
+    ]  # fmt: skip
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    results = out / RESULTS_FILE
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and process.poll() is None:
+        if results.exists() and len(results.read_text().splitlines()) >= 2:
+            break
+        time.sleep(0.05)
+    process.kill()
+    process.wait()
+    finished = read_results(results)
+    assert 2 <= len(finished) <= 8
+    with results.open("a") as file:  # a line cut short by the kill
+        file.write('{"key": "paper/pen')
+    outcome = run_study(TINY, out, progress=False, log=_quiet)
+    assert outcome.skipped == len(finished) and outcome.ran_now == 8 - len(finished)
+    keys = [r["key"] for r in read_results(results)]
+    assert len(keys) == len(set(keys)) == 8
+
+
+def test_study_refuses_different_physics_in_the_same_directory(tiny_study) -> None:
+    out, _ = tiny_study
+    changed = StudySpec(
+        methods=TINY.methods, levels=TINY.levels, lesions=TINY.lesions, reference_level=1363,
+        depths_m=(0.004, 0.009),
+    )  # fmt: skip
+    with pytest.raises(ConfigError, match="depths_m"):
+        run_study(changed, out, progress=False, log=_quiet)
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--methods", "lm,fem"], "unknown contact method 'fem'"),
+        (["--levels", "623,999"], "999"),
+        (["--scene", "/nonexistent/scene"], "neither 'synthetic'"),
+        (["--depths", "0.02,0.01"], "must increase"),
+        (["--depths", "20,30"], "metres"),
+        (["--config", "fast"], "unknown configuration 'fast'"),
+        (["--lesions", "11"], "not in the synthetic scene"),
+        (["--workers", "0"], "--workers"),
+    ],
+)
+def test_bad_arguments_fail_before_any_work(
+    tmp_path: Path, arguments: list[str], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from agents.cli import main
+
+    out = tmp_path / "never"
+    code = main(["study", "--out", str(out), "--no-progress", *arguments])
+    assert code == 2
+    assert message in capsys.readouterr().err
+    assert not (out / RESULTS_FILE).exists()
+
+
+def test_valid_errors_keep_only_depths_every_method_reached() -> None:
+    def record(method: str, errors: list[float | None]) -> dict:
+        return {"config": "paper", "method": method, "level": 623, "lesion": 1, "tets": 622,
+                "errors_m": errors}  # fmt: skip
+
+    records = [record("lm", [1.0, 2.0, 3.0]), record("penalty", [1.5, None]), record("pbd", [4.0])]
+    errors = valid_errors(records, ["paper"])["paper"]
+    assert errors == {("lm", 623): [1.0], ("penalty", 623): [1.5], ("pbd", 623): [4.0]}
+
+
+def test_pareto_front_marks_undominated_points() -> None:
+    points = [(1.0, 5.0), (2.0, 2.0), (3.0, 3.0), (10.0, 1.0), (2.0, 6.0)]
+    assert pareto_front(points) == [0, 1, 3]
+
+
+def test_cells_run_pbd_once_and_coarse_levels_first() -> None:
+    cells = StudySpec(levels=(1363, 623), lesions=(1,)).cells((1,))
+    assert [c.level for c in cells[:7]] == [1363] * 7  # the order given
+    pbd = [c for c in cells if c.method is ContactMethod.PBD]
+    assert len(pbd) == 2 and all(c.config is StudyConfig.PAPER for c in pbd)
+    assert Cell(StudyConfig.ROBUST, ContactMethod.LM, 623, 3).key == "robust/lm/623/3"
+
+
+@pytest.mark.slow
+def test_published_scene_runs_one_lesion(tmp_path: Path, paper_scene_dir: Path) -> None:
+    spec = StudySpec(
+        scene=str(paper_scene_dir), methods=(ContactMethod.PRESCRIBED, ContactMethod.LM),
+        levels=("published",), lesions=(1,), configs=("paper",), reference_level="published",
+    )  # type: ignore[arg-type]  # fmt: skip
+    outcome = run_study(spec, tmp_path, progress=False, log=_quiet)
+    assert len(outcome.records) == 2
+    for record in outcome.records:
+        assert record["tets"] == 9295 and record["scene"] == "paper"
+        assert len(record["depths_m"]) == 4 and record["tracked_m"]
+    lm = next(r for r in outcome.records if r["method"] == "lm")
+    # LM on the reference's own mesh, dynamic and settled, against its quasi-static solve.
+    assert all(e is not None and e < 1e-3 for e in lm["errors_m"])
+
+
+@pytest.mark.slow
+def test_local_ray_run_matches_local_run(tmp_path: Path) -> None:
+    pytest.importorskip("ray", reason="Ray is the optional 'ray' extra")
+    spec = StudySpec(
+        methods=(ContactMethod.PRESCRIBED, ContactMethod.PENALTY), levels=(623,), lesions=(4,),
+        reference_level=623, depths_m=(0.004, 0.008),
+    )  # fmt: skip
+    env_before = dict(os.environ)
+    local = run_study(spec, tmp_path / "local", progress=False, log=_quiet)
+    on_ray = run_study(spec, tmp_path / "ray", workers=2, ray_address="local", progress=False,
+                       log=_quiet)  # fmt: skip
+    import ray
+
+    ray.shutdown()
+    os.environ.clear()
+    os.environ.update(env_before)
+    by_key = {r["key"]: r for r in local.records}
+    assert {r["key"] for r in on_ray.records} == set(by_key)
+    for record in on_ray.records:
+        twin = by_key[record["key"]]
+        assert record["tracked_m"] == pytest.approx(twin["tracked_m"], abs=1e-12)
+        assert record["stability_percent"] == twin["stability_percent"]
+        assert record["errors_m"] == pytest.approx(twin["errors_m"], abs=1e-12)

@@ -1,0 +1,180 @@
+"""What "stable" means for a coupled probe-tissue run, checked after every step.
+
+The compression study's instability detector and the hard-case tests use this one monitor.
+A step is unstable when any of these holds:
+
+- ``status``: the tissue step itself failed (not converged, an inverted element, solver
+  divergence or failure; see :class:`tissue.status.StepStatus`);
+- ``non_finite``: NaN or Inf in the node positions, the wrench or the landmarks;
+- ``penetration``: the deepest collision-surface point lies further inside the probe than
+  the method's bound (:data:`PENETRATION_BOUND_M`);
+- ``blow_up``: a node moved further from rest than ``blow_up_factor`` times the probe's
+  travel plus ``blow_up_margin_m`` (nothing but the probe moves the tissue);
+- ``landmark_jump``: a landmark moved further in one step than the probe did plus
+  ``landmark_jump_margin_m`` (trajectories must be continuous);
+- ``timeout``: one step took longer than ``step_timeout_s`` of wall time.
+
+Limitations: the energy bound (elastic + kinetic energy below the work done by the probe)
+is not checked here: the PBD backend has no energy to compare.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tissue.contact.base import ContactMethod, ContactResult
+from tissue.errors import ConfigError
+
+#: Largest penetration [m] a stable step may leave, per method. LM and prescribed
+#: displacement enforce contact (0.5 mm, as the hard-cases catalogue asks); penalty leaves
+#: about 2 % of the indentation with its default k_s (0.6 mm at 30 mm), so its bound is
+#: 2 mm; PBD projects contacts, 1 mm covers its contact margin.
+PENETRATION_BOUND_M: dict[ContactMethod, float] = {
+    ContactMethod.LM: 0.0005,
+    ContactMethod.PRESCRIBED: 0.0005,
+    ContactMethod.PENALTY: 0.002,
+    ContactMethod.PBD: 0.001,
+}
+
+
+@dataclass(frozen=True)
+class StabilityLimits:
+    """Bounds of a stable step.
+
+    Attributes:
+        penetration_m: largest penetration [m]; None takes the method's
+            :data:`PENETRATION_BOUND_M`.
+        blow_up_factor: a node may move at most this many times the probe's travel ...
+        blow_up_margin_m: ... plus this [m] from rest.
+        landmark_jump_margin_m: a landmark may move at most the probe's motion in the step
+            plus this [m].
+        step_timeout_s: wall-time limit of one step [s].
+    """
+
+    penetration_m: float | None = None
+    blow_up_factor: float = 3.0
+    blow_up_margin_m: float = 0.005
+    landmark_jump_margin_m: float = 0.001
+    step_timeout_s: float = 120.0
+
+    def __post_init__(self) -> None:
+        for name in ("blow_up_factor", "blow_up_margin_m", "landmark_jump_margin_m"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ConfigError(f"StabilityLimits.{name} must be > 0; got {value!r}")
+        if not (np.isfinite(self.step_timeout_s) and self.step_timeout_s > 0):
+            raise ConfigError(
+                f"StabilityLimits.step_timeout_s must be > 0 s; got {self.step_timeout_s!r}"
+            )
+        if self.penetration_m is not None and not (
+            np.isfinite(self.penetration_m) and self.penetration_m > 0
+        ):
+            raise ConfigError(
+                f"StabilityLimits.penetration_m must be > 0 m or None; got {self.penetration_m!r}"
+            )
+
+
+@dataclass(frozen=True)
+class Instability:
+    """Why a step was judged unstable.
+
+    Attributes:
+        kind: ``status``, ``non_finite``, ``penetration``, ``blow_up``, ``landmark_jump`` or
+            ``timeout``.
+        detail: a sentence with the measured value and the bound.
+    """
+
+    kind: str
+    detail: str
+
+
+class StabilityMonitor:
+    """Checks each step of one run against :class:`StabilityLimits`.
+
+    Args:
+        method: the contact method (picks the penetration bound).
+        rest_positions: tissue node positions at rest [m], (node_count, 3).
+        start_probe_position: the probe origin at the start of the run [m], (3,).
+        limits: the bounds.
+    """
+
+    def __init__(
+        self,
+        method: ContactMethod | str,
+        rest_positions: NDArray[np.float64],
+        start_probe_position: NDArray[np.float64],
+        limits: StabilityLimits | None = None,
+    ) -> None:
+        self.method = ContactMethod.parse(method)
+        self.limits = limits if limits is not None else StabilityLimits()
+        self.penetration_bound_m = (
+            self.limits.penetration_m
+            if self.limits.penetration_m is not None
+            else PENETRATION_BOUND_M[self.method]
+        )
+        self._rest = np.asarray(rest_positions, dtype=np.float64)
+        self._start = np.asarray(start_probe_position, dtype=np.float64).copy()
+        self._previous_probe = self._start.copy()
+        self._previous_landmarks: NDArray[np.float64] | None = None
+
+    def check(
+        self,
+        result: ContactResult,
+        node_positions: NDArray[np.float64],
+        probe_position: NDArray[np.float64],
+    ) -> Instability | None:
+        """Judge one step; returns None when it is stable.
+
+        Args:
+            result: what the step returned.
+            node_positions: tissue node positions after the step [m], (node_count, 3).
+            probe_position: the probe origin the step was taken at [m], (3,).
+        """
+        probe_position = np.asarray(probe_position, dtype=np.float64)
+        probe_motion = float(np.linalg.norm(probe_position - self._previous_probe))
+        self._previous_probe = probe_position.copy()
+        landmarks = result.landmarks
+        previous_landmarks, self._previous_landmarks = self._previous_landmarks, landmarks
+        if result.status.is_failure:
+            return Instability("status", f"the tissue step reported '{result.status.value}'")
+        finite = (
+            np.all(np.isfinite(node_positions))
+            and np.all(np.isfinite(result.force_world))
+            and np.all(np.isfinite(result.torque_world))
+            and np.all(np.isfinite(landmarks))
+        )
+        if not finite:
+            return Instability("non_finite", "NaN or Inf in the positions, wrench or landmarks")
+        if result.compute_ms > 1e3 * self.limits.step_timeout_s:
+            return Instability(
+                "timeout",
+                f"the step took {result.compute_ms / 1e3:.1f} s "
+                f"(limit {self.limits.step_timeout_s:g} s)",
+            )
+        if result.penetration_max_m > self.penetration_bound_m:
+            return Instability(
+                "penetration",
+                f"penetration {result.penetration_max_m * 1e3:.3f} mm beyond the "
+                f"{self.method.value} bound {self.penetration_bound_m * 1e3:.2f} mm",
+            )
+        travel = float(np.linalg.norm(probe_position - self._start))
+        allowed = self.limits.blow_up_factor * travel + self.limits.blow_up_margin_m
+        moved = float(np.sqrt(np.max(np.sum((node_positions - self._rest) ** 2, axis=1))))
+        if moved > allowed:
+            return Instability(
+                "blow_up",
+                f"a node moved {moved * 1e3:.1f} mm from rest; the probe travelled "
+                f"{travel * 1e3:.1f} mm (bound {allowed * 1e3:.1f} mm)",
+            )
+        if previous_landmarks is not None and landmarks.size:
+            jump = float(np.sqrt(np.max(np.sum((landmarks - previous_landmarks) ** 2, axis=1))))
+            if jump > probe_motion + self.limits.landmark_jump_margin_m:
+                return Instability(
+                    "landmark_jump",
+                    f"a landmark jumped {jump * 1e3:.2f} mm in one step while the probe moved "
+                    f"{probe_motion * 1e3:.2f} mm",
+                )
+        return None
