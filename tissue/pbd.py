@@ -42,7 +42,7 @@ sweeps over all constraints (multipliers reset to zero at each substep), and v =
   one). Not the collision surface itself: each of its points is embedded in one tet, often a
   small one of a finer volume, and projecting it moves that tet's 4 nodes, interior ones
   included; the boundary nodes match the FE reference, which holds those nodes (see
-  Calibration). Penetration (the base class) is still measured on the collision surface. Each
+  Calibration). Penetration is measured on these same points. Each
   substep, the probe is placed at a pose interpolated between the previous step's pose and the
   new one (linear in position, nlerp in orientation), and every point within
   ``contact_margin_m`` of it (signed distance from the probe's exact SDF, at the predicted
@@ -597,6 +597,10 @@ class PBDContact(ContactModel):
         self._reset_tissue()
 
     # ------------------------------------------------------------------ interface
+
+    def contact_points_world(self) -> NDArray[np.float64]:
+        """The points PBD contact acts on [m], (k, 3) (see :func:`_contact_points`)."""
+        return np.einsum("kj,kjd->kd", self._point_weights, self._x[self._point_nodes])
 
     @property
     def node_positions(self) -> NDArray[np.float64]:

@@ -13,8 +13,13 @@ from agents.compress import build_model, run_compression
 from agents.study.scenes import StudyScene, open_scene
 from agents.study.spec import Cell, StudyConfig, StudySpec
 from tissue.contact.base import ContactMethod
-from tissue.contact.stability import StabilityMonitor
+from tissue.contact.stability import StabilityLimits, StabilityMonitor
 from tissue.probe import parse_probe_spec
+
+#: The study's instability detector: every check of :mod:`tissue.contact.stability` but the
+#: landmark jump, which frictionless contact on the sloped phantom also trips physically
+#: (the tissue slipping out from under the probe); the largest jump is recorded instead.
+STUDY_LIMITS = StabilityLimits(landmark_jump_margin_m=None)
 
 # Scenes opened in this process (a worker runs many cells of one scene).
 _SCENES: dict[str, StudyScene] = {}
@@ -45,7 +50,7 @@ def run_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
         mesh, shape, cell.method.value, cell.config.value, None, None, online, node_set
     )
     start, stops = scene.path(mesh, shape, cell.lesion, spec.depths_m)
-    monitor = StabilityMonitor(cell.method, mesh.nodes, start.position)
+    monitor = StabilityMonitor(cell.method, mesh.nodes, start.position, STUDY_LIMITS)
     run = run_compression(model, start, stops, spec.speed_m_s, monitor=monitor)
     assert mesh.landmarks is not None
     tracked = mesh.landmarks.names.index(scene.landmark_name(cell.lesion))
@@ -66,6 +71,7 @@ def run_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
         "force_normal_n": [level["force_normal_n"] for level in run["levels"]],
         "penetration_max_m": [level["penetration_max_m"] for level in run["levels"]],
         "step_ms": summarise_times(step_ms),
+        "landmark_jump_max_m": landmark_jump_beyond_probe(run["steps"]),
         "stability_percent": run["stability_percent"],
         "status": "ok" if instability is None else "unstable",
         "instability": instability,
@@ -87,3 +93,15 @@ def summarise_times(step_ms: np.ndarray) -> dict[str, float | int]:
         "max": float(np.max(step_ms)),
         "count": int(step_ms.size),
     }
+
+
+def landmark_jump_beyond_probe(steps: list[dict[str, Any]]) -> float:
+    """Largest one-step landmark motion beyond the probe's motion in that step [m] (>= 0)."""
+    if len(steps) < 2:
+        return 0.0
+    landmarks = np.array([step["landmarks"] for step in steps], dtype=np.float64)
+    probe = np.array([step["probe_pos"] for step in steps], dtype=np.float64)
+    jumps = np.linalg.norm(np.diff(landmarks, axis=0), axis=2).max(axis=1)
+    probe_motion = np.linalg.norm(np.diff(probe, axis=0), axis=1)
+    excess = np.nan_to_num(jumps - probe_motion, nan=np.inf)
+    return float(max(0.0, excess.max()))

@@ -50,7 +50,8 @@ class ContactResult:
         torque_world: torque of those forces about the probe origin [N m], (3,).
         contact_points: where contact forces act [m], (contact_count, 3).
         contact_forces: force on the probe at each contact point [N], (contact_count, 3).
-        penetration_max_m: deepest collision-surface vertex inside the probe [m] (>= 0).
+        penetration_max_m: deepest tissue point inside the probe [m] (>= 0), over the points
+            the method keeps out of it (:meth:`ContactModel.contact_points_world`).
         landmarks: landmark positions [m], (landmark_count, 3).
         compute_ms: wall time of the step [ms].
         diagnostics: solver details (iterations, residuals, substeps, ...).
@@ -163,6 +164,9 @@ class ContactModel(abc.ABC):
         start = time.perf_counter()
         self.probe.set_pose(position, quat_wxyz)
         status, points, forces, diagnostics = self._advance()
+        if status in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
+            # The state was kept from before the step; forces of the failed solve mean nothing.
+            points, forces = np.zeros((0, 3)), np.zeros((0, 3))
         force, torque = (
             self.probe.wrench_about_origin(points, forces)
             if points.shape[0]
@@ -184,10 +188,18 @@ class ContactModel(abc.ABC):
             diagnostics=diagnostics,
         )
 
+    def contact_points_world(self) -> NDArray[np.float64]:
+        """The tissue points this method keeps out of the probe [m], (point_count, 3).
+
+        The collision surface by default; methods acting on the volume's boundary nodes
+        (prescribed displacement, PBD) override it, because a fine collision surface lying
+        above a coarse volume's boundary facets is not what they hold.
+        """
+        return self.surface.positions(self.node_positions)
+
     def penetration_max_m(self) -> float:
-        """Deepest collision-surface point inside the probe now [m] (0 if none)."""
-        points = self.surface.positions(self.node_positions)
-        distance, _ = self.probe.signed_distance_world(points)
+        """Deepest of :meth:`contact_points_world` inside the probe now [m] (0 if none)."""
+        distance, _ = self.probe.signed_distance_world(self.contact_points_world())
         return float(max(0.0, -float(distance.min()))) if distance.size else 0.0
 
     def landmark_positions(self) -> NDArray[np.float64]:

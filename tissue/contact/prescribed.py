@@ -18,7 +18,9 @@ Where online prescribed displacement still differs from Lagrange multipliers:
 
 - nodes in contact stick to the probe (no tangential sliding: infinite friction), where LM
   is frictionless;
-- contact acts on volume boundary nodes, not on the collision surface's points;
+- contact acts on volume boundary nodes, not on the collision surface's points (so its
+  penetration is measured on those nodes: on a coarse volume the finer collision surface
+  bulges between them by up to the chord's sag, about 1 mm at 623 tets);
 - a node leaves contact one step after its reaction turns tensile, and enters only once the
   probe has passed it (a penetration of up to one step's motion is corrected at entry).
 """
@@ -88,6 +90,10 @@ class PrescribedContact(FEContactModel):
         self._nodes = np.zeros(0, dtype=np.int64)
         self._local = np.zeros((0, 3))
         self._last_reaction = None
+
+    def contact_points_world(self) -> NDArray[np.float64]:
+        """The free boundary nodes [m], (k, 3): the points the method moves with the probe."""
+        return self.sim.positions[self.boundary_nodes]
 
     @property
     def contact_nodes(self) -> NDArray[np.int64]:

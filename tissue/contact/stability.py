@@ -11,7 +11,11 @@ A step is unstable when any of these holds:
 - ``blow_up``: a node moved further from rest than ``blow_up_factor`` times the probe's
   travel plus ``blow_up_margin_m`` (nothing but the probe moves the tissue);
 - ``landmark_jump``: a landmark moved further in one step than the probe did plus
-  ``landmark_jump_margin_m`` (trajectories must be continuous);
+  ``landmark_jump_margin_m`` (trajectories must be continuous). Frictionless contact on a
+  sloped skin can also jump physically: pressed deep enough, the tissue slips out from under
+  the probe (the converged quasi-static solution of the default phantom does so under lesion
+  4 at 25 mm, a 24 mm jump). Scenarios where that can happen (the compression study) set
+  the margin to None and record the jumps as data instead;
 - ``timeout``: one step took longer than ``step_timeout_s`` of wall time.
 
 Limitations: the energy bound (elastic + kinetic energy below the work done by the probe)
@@ -50,19 +54,21 @@ class StabilityLimits:
         blow_up_factor: a node may move at most this many times the probe's travel ...
         blow_up_margin_m: ... plus this [m] from rest.
         landmark_jump_margin_m: a landmark may move at most the probe's motion in the step
-            plus this [m].
+            plus this [m]; None: not checked.
         step_timeout_s: wall-time limit of one step [s].
     """
 
     penetration_m: float | None = None
     blow_up_factor: float = 3.0
     blow_up_margin_m: float = 0.005
-    landmark_jump_margin_m: float = 0.001
+    landmark_jump_margin_m: float | None = 0.001
     step_timeout_s: float = 120.0
 
     def __post_init__(self) -> None:
         for name in ("blow_up_factor", "blow_up_margin_m", "landmark_jump_margin_m"):
             value = getattr(self, name)
+            if value is None and name == "landmark_jump_margin_m":
+                continue
             if not (np.isfinite(value) and value > 0):
                 raise ConfigError(f"StabilityLimits.{name} must be > 0; got {value!r}")
         if not (np.isfinite(self.step_timeout_s) and self.step_timeout_s > 0):
@@ -169,9 +175,10 @@ class StabilityMonitor:
                 f"a node moved {moved * 1e3:.1f} mm from rest; the probe travelled "
                 f"{travel * 1e3:.1f} mm (bound {allowed * 1e3:.1f} mm)",
             )
-        if previous_landmarks is not None and landmarks.size:
+        margin = self.limits.landmark_jump_margin_m
+        if margin is not None and previous_landmarks is not None and landmarks.size:
             jump = float(np.sqrt(np.max(np.sum((landmarks - previous_landmarks) ** 2, axis=1))))
-            if jump > probe_motion + self.limits.landmark_jump_margin_m:
+            if jump > probe_motion + margin:
                 return Instability(
                     "landmark_jump",
                     f"a landmark jumped {jump * 1e3:.2f} mm in one step while the probe moved "
