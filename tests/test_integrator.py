@@ -174,3 +174,30 @@ def test_robust_mode_survives_the_same_violent_step() -> None:
     assert np.all(np.isfinite(result.positions))
     assert result.status in (StepStatus.OK, StepStatus.NOT_CONVERGED)
     assert result.min_volume_ratio > 0.0
+
+
+def test_continued_steps_start_from_extrapolation_and_converge_to_the_same_state() -> None:
+    size = 0.02
+    mesh = block_mesh((size, size, size / 2), (4, 4, 2), fix="z=min")
+    materials = TissueMaterials(tissue=NeoHookean(E, NU))
+    top = nodes_on_plane(mesh.nodes, "z=max")
+    config = SimulationConfig(mode="robust", newton_tolerance=1e-6)
+    continued = TissueSimulator(mesh, materials, config)
+    restarted = TissueSimulator(mesh, materials, config)
+    iterations = np.zeros(2, dtype=int)
+    for i in range(1, 9):
+        target = mesh.nodes[top] + [0.0, 0.0, -0.0002 * i]
+        continued.prescribe(top, target)
+        first = continued.step()
+        restarted.prescribe(top, target)
+        # A state set from outside is not the last step's: no extrapolation.
+        restarted.set_state(restarted.positions, restarted.velocities)
+        second = restarted.step()
+        for result in (first, second):
+            assert result.status is StepStatus.OK
+            assert result.newton_residual <= 1e-6
+        iterations += [first.newton_iterations, second.newton_iterations]
+        if i > 2:  # steadier motion: the extrapolated start is closer to the solution
+            assert first.newton_residuals[0] < 0.5 * second.newton_residuals[0]
+    assert iterations[0] < iterations[1]
+    np.testing.assert_allclose(continued.positions, restarted.positions, atol=1e-9)

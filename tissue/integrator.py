@@ -66,8 +66,10 @@ _MIN_STEP_FRACTION = 2.0**-12
 # Relative Newton residual below which the exact (unprojected) tangent is tried first.
 _PROJECTION_SWITCH = 1e-1
 # A Newton direction is solved no more accurately than needed to bring the residual to this
-# fraction of the Newton tolerance: the new residual is, to first order, the linear one.
-_LINEAR_SHARE_OF_TOLERANCE = 0.25
+# fraction of the Newton tolerance: the new residual is, to first order, the linear one
+# (176k-tet phantom, steady compression: relative linear residual 6.3e-2 x ||rhs|| / force
+# scale 5.7e-4 = 3.6e-5 predicted, 3.6e-5 measured).
+_LINEAR_SHARE_OF_TOLERANCE = 0.5
 
 
 class IntegrationMode(Choice):
