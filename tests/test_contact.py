@@ -68,7 +68,8 @@ def test_penalty_penetration_shrinks_as_stiffness_grows(block) -> None:
     shape = SphereProbe(0.01)
     penetrations, forces = [], []
     for stiffness in (20.0, 200.0, 2000.0):
-        model = _model("penalty", block, shape, params=PenaltyParams(stiffness_n_per_m=stiffness))
+        params = PenaltyParams(stiffness_n_per_m=stiffness, augmented=False)
+        model = _model("penalty", block, shape, params=params)
         result = _press(model, shape, 0.002, 10, SIZE / 2)
         assert result.status is StepStatus.OK
         penetrations.append(result.penetration_max_m)
@@ -78,6 +79,22 @@ def test_penalty_penetration_shrinks_as_stiffness_grows(block) -> None:
     exact = _press(_model("lm", block, shape), shape, 0.002, 10, SIZE / 2).force_world[2]
     assert abs(forces[2] - exact) < abs(forces[0] - exact)
     assert forces[2] == pytest.approx(exact, rel=0.05)
+
+
+def test_augmented_penalty_reaches_its_tolerance_with_soft_springs(block) -> None:
+    shape = SphereProbe(0.01)
+    soft = PenaltyParams(stiffness_n_per_m=20.0, penetration_tolerance_m=2e-5)
+    model = _model("penalty", block, shape, params=soft)
+    result = _press(model, shape, 0.002, 10, SIZE / 2)
+    assert result.status is StepStatus.OK
+    assert result.penetration_max_m <= 2e-5
+    assert result.diagnostics["augmentations"] >= 1
+    plain_params = PenaltyParams(stiffness_n_per_m=20.0, augmented=False)
+    plain = _press(_model("penalty", block, shape, params=plain_params), shape, 0.002, 10, SIZE / 2)
+    exact = _press(_model("lm", block, shape), shape, 0.002, 10, SIZE / 2).force_world[2]
+    # The same soft k_s, augmented: the exact force, where plain springs miss it.
+    assert result.force_world[2] == pytest.approx(exact, rel=0.02)
+    assert abs(plain.force_world[2] - exact) > 5 * abs(result.force_world[2] - exact)
 
 
 def test_prescribed_reaction_balances_the_fixed_base(block) -> None:

@@ -66,18 +66,16 @@ def test_tiny_study_writes_every_output_consistently(tiny_study) -> None:
         if record["status"] == "ok":
             assert record["stability_percent"] == 100.0 and len(record["tracked_m"]) == 2
         assert record["step_ms"]["count"] > 0 and record["step_ms"]["median"] > 0
-        # Pressing 4 mm moves the lesion below by millimetres (along the tilted normal).
-        # Penalty contact approximates the reference's exact (LM) contact, so its error is a
-        # fraction of that motion; prescribed displacement sticks where LM slides, so it
-        # only has to be finite.
-        if record["tracked_m"]:
-            moved = float(
-                np.linalg.norm(np.subtract(record["tracked_m"][0], record["rest_tracked_m"]))
-            )
-            assert 1e-3 < moved < 4e-3
-            assert all(e is not None and 0 <= e < 0.02 for e in record["errors_m"])
-            if record["method"] == "penalty":
-                assert all(e < 0.25 * moved for e in record["errors_m"])
+        # Pressing moves the lesion below by millimetres (along the tilted normal).
+        # Penalty contact approximates the reference's exact (LM) contact: on the
+        # reference's own level its error is a small fraction of that motion; prescribed
+        # displacement sticks where LM slides, so it only has to stay below the motion.
+        for point, error in zip(record["tracked_m"], record["errors_m"], strict=True):
+            moved = float(np.linalg.norm(np.subtract(point, record["rest_tracked_m"])))
+            assert 1e-3 < moved < 8e-3
+            assert error is not None and 0 <= error < moved
+            if record["method"] == "penalty" and record["level"] == TINY.reference_level:
+                assert error < 0.1 * moved
     stability = (out / "stability.md").read_text()
     assert "paper PrescrDispl mean" in stability and "robust Penalty mean" in stability
     rows = [line for line in stability.splitlines() if line.startswith("| 6") or "1,363" in line]

@@ -6,7 +6,8 @@ and reference level and cached on disk: Lagrange-multiplier contact (exact, no
 penetration) solved quasi-statically -- static equilibrium at every probe pose, Newton to a
 relative residual of 1e-5 -- with the probe advanced in 2 mm increments along the same path
 as the cells (1 mm increments give the same positions to 1e-6 mm: frictionless contact on
-a hyperelastic body is path-independent). Settled cells are static equilibria too, so the two compare like for like.
+a hyperelastic body is path-independent). Settled cells are static equilibria too, so the
+two compare like for like.
 
 Measured positions (``--measured FILE.csv``) replace it. The CSV has a header and one row
 per lesion and depth::
@@ -49,13 +50,21 @@ REFERENCE_MAX_ITERATIONS = 60
 
 
 def reference_key(spec: StudySpec, scene: StudyScene, lesion: int) -> str:
-    """The cache key of one lesion's reference."""
+    """The cache key of one lesion's reference: the scene's data, the level, the probe's
+    path (every pose, so a change in how paths are planned is a new key) and the solver."""
+    start, stops = scene.path(
+        scene.mesh(spec.reference_level), parse_probe_spec("face"), lesion, spec.depths_m
+    )
+    poses = [start] + stops
+    path = ";".join(
+        ",".join(f"{v:.9f}" for v in (*w.position, *w.quat_wxyz, w.depth_m or 0.0)) for w in poses
+    )
     parts = [
         f"v{REFERENCE_VERSION}",
         scene.fingerprint(),
         f"lesion{lesion}",
         f"level{spec.reference_level}",
-        ",".join(f"{d:.6f}" for d in spec.depths_m) if scene.directory is None else "poses",
+        path,
         f"tol{REFERENCE_TOLERANCE:g}",
         f"inc{REFERENCE_INCREMENT_M:g}",
     ]

@@ -3,8 +3,14 @@
 ``synthetic``: the built-in phantom (:mod:`tissue.phantom`) at the 9 levels, lesions 1-10.
 The probe is placed on the skin above each lesion, normal to the surface: the pressing
 direction is the inward normal of the collision surface at the skin point straight above
-the lesion's centre, aimed through the centre; the path is the same in world coordinates
-at every level (every level shares one collision surface and one set of tracked points).
+the lesion's centre, aimed through the centre, with the probe's long axis down the slope (a
+radial scan plane); the path is the same in world coordinates at every level (every level
+shares one collision surface and one set of tracked points).
+
+Most lesions lie on the dome's flanks, where the skin is tilted 45-55 degrees: pressed 25-30
+mm along the normal, frictionless tissue (the paper's assumption) can slip out from under
+the probe, or be pinched between the probe and the fixed base; the converged reference does
+the same, and the study reports it (largest landmark jump, force per depth).
 
 ``paper`` (or a directory laid out like ../shared/paper-scene): the published scene, on its
 own mesh (level ``published``) and re-meshed at the 9 levels; lesions are its tumours and
@@ -29,7 +35,7 @@ from tissue.contact.base import contact_surface
 from tissue.contact.placement import first_contact_pose, ray_surface_hit
 from tissue.errors import ConfigError
 from tissue.mesh import TetMesh
-from tissue.probe import ProbeShape
+from tissue.probe import Probe, ProbeShape
 
 #: Where ``--scene paper`` looks, in order: this variable, then ``shared/paper-scene`` beside
 #: the checkout, then under the working directory.
@@ -121,7 +127,10 @@ class StudyScene:
         centre = centres[lesion - 1]
         direction = -skin_normal_above(mesh, centre)
         surface = contact_surface(mesh)
-        position, quat = first_contact_pose(surface, mesh.nodes, shape, centre, direction)
+        roll = radial_roll_rad(shape, direction)
+        position, quat = first_contact_pose(
+            surface, mesh.nodes, shape, centre, direction, roll_rad=roll
+        )
         return straight_path(position, quat, direction, list(depths_m))
 
     def prescribed_nodes(self, mesh: TetMesh, lesion: int) -> tuple[int, ...] | None:
@@ -129,6 +138,24 @@ class StudyScene:
         if self.directory is None:
             return None
         return spring_nodes_to_volume(mesh, self.paper_scene().spring_nodes[lesion])
+
+
+def radial_roll_rad(shape: ProbeShape, direction: NDArray[np.float64]) -> float:
+    """Roll that lays the probe's long axis down the skin's slope (a radial scan plane).
+
+    Breast sonographers scan radially; on the dome's flanks it also gives frictionless
+    tissue 53 mm of face to cross, not 13 mm, before it can slip out downhill. Zero where
+    the skin is level.
+    """
+    probe = Probe.looking_along(shape, np.zeros(3), direction)
+    rotation = probe.rotation_world()
+    x_axis, z_axis = rotation[:, 0], rotation[:, 2]
+    down = np.array([0.0, 0.0, -1.0])
+    downhill = down - (down @ direction) * direction
+    if np.linalg.norm(downhill) < 1e-6:
+        return 0.0
+    # looking_along rolls x towards -z: the roll taking x onto the downhill direction.
+    return float(np.arctan2(-(downhill @ z_axis), downhill @ x_axis))
 
 
 def skin_normal_above(mesh: TetMesh, point: NDArray[np.float64]) -> NDArray[np.float64]:

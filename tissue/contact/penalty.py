@@ -10,6 +10,15 @@ In ``paper`` mode the springs are linearised once per step at the start position
 SOFA does; in ``robust`` mode they are an energy term of the step's incremental potential,
 re-evaluated at every Newton iterate (so contacts appearing during the step are caught).
 
+Robust mode also augments the springs (augmented Lagrangian, Simo & Laursen 1992; Wriggers,
+*Computational Contact Mechanics*, 2006, section 6.3): each point carries a force offset
+lambda, its force is max(0, lambda + k_s delta), and after a converged step whose deepest
+point is past ``penetration_tolerance_m`` the offsets take the step's forces and the step is
+solved again from the same start (at most ``max_augmentations`` times). The offsets carry
+over to the next step, so a steady press needs about one solve per step. The penetration
+then falls to the tolerance without raising k_s, which keeps the system as well conditioned
+as the default k_s makes it (the paper's stability problem with stiff penalties).
+
 Limitations: the constraint is only approximately satisfied (penetration ~ force / k_s);
 a large k_s worsens the conditioning of the system (the paper's stability problem on fine
 meshes). The default k_s scales with the tissue's modulus and the surface's resolution
@@ -18,6 +27,7 @@ meshes). The default k_s scales with the tissue's modulus and the surface's reso
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,7 +37,7 @@ from numpy.typing import NDArray
 from tissue.contact.base import ContactMethod, SurfacePoints
 from tissue.contact.fe_model import FEContactModel, detect_contacts
 from tissue.errors import ConfigError
-from tissue.integrator import TermEvaluation
+from tissue.integrator import IntegrationMode, TermEvaluation
 from tissue.probe import Probe
 from tissue.status import StepStatus
 
@@ -45,12 +55,27 @@ class PenaltyParams:
             ``DEFAULT_STIFFNESS_RATIO`` x E_tissue x mean surface edge length.
         contact_distance_m: springs act when a point is closer than this to the probe [m]
             (the published scene used 1 mm; 0 makes the probe surface itself the contact).
+        augmented: augmented-Lagrangian updates (see the module docstring); None: in robust
+            mode only (paper mode keeps the paper's plain springs).
+        penetration_tolerance_m: (augmented) re-solve a step while a point is deeper [m].
+        max_augmentations: (augmented) re-solves per step at most.
     """
 
     stiffness_n_per_m: float | None = None
     contact_distance_m: float = 0.0
+    augmented: bool | None = None
+    penetration_tolerance_m: float = 1e-4
+    max_augmentations: int = 5
 
     def __post_init__(self) -> None:
+        if not (np.isfinite(self.penetration_tolerance_m) and self.penetration_tolerance_m > 0):
+            raise ConfigError(
+                f"penetration_tolerance_m must be > 0 m; got {self.penetration_tolerance_m!r}"
+            )
+        if not (isinstance(self.max_augmentations, int) and self.max_augmentations >= 0):
+            raise ConfigError(
+                f"max_augmentations must be an integer >= 0; got {self.max_augmentations!r}"
+            )
         if self.stiffness_n_per_m is not None and not (
             np.isfinite(self.stiffness_n_per_m) and self.stiffness_n_per_m > 0
         ):
@@ -72,14 +97,39 @@ class PenaltyTerm:
         self.distance = distance
         self._cache_key: NDArray[np.float64] | None = None
         self._cache: TermEvaluation | None = None
-        self._cache_pose = np.zeros(7)
+        self._cache_pose = np.zeros(8)
         self.last_contacts: Any = None
         self.last_magnitudes = np.zeros(0)
+        # Augmented-Lagrangian force offsets per surface point [N] (zero: plain springs).
+        self.offsets = np.zeros(surface.count)
+        self._offsets_version = 0
+
+    def augment(self, positions: NDArray[np.float64]) -> float:
+        """Offsets <- the forces at ``positions`` (lambda <- max(0, lambda + k_s delta)).
+
+        Returns the deepest penetration past the contact distance there [m] (>= 0), measured
+        before the update.
+        """
+        self.evaluate(positions)
+        contacts = self.last_contacts
+        depth = self.distance - contacts.distance
+        self.offsets[:] = 0.0
+        self.offsets[contacts.points] = self.last_magnitudes
+        self._offsets_version += 1
+        return float(max(0.0, depth.max())) if depth.size else 0.0
+
+    def penetration_m(self, positions: NDArray[np.float64]) -> float:
+        """Deepest point past the contact distance at ``positions`` [m] (>= 0)."""
+        self.evaluate(positions)
+        depth = self.distance - self.last_contacts.distance
+        return float(max(0.0, depth.max())) if depth.size else 0.0
 
     def evaluate(self, positions: NDArray[np.float64]) -> TermEvaluation:
         # One step asks for forces and stiffness at the same positions several times.
         # The probe moves between steps: the cache is keyed on its pose too.
-        pose = np.concatenate([self.probe.position_world, self.probe.quat_wxyz])
+        pose = np.concatenate(
+            [self.probe.position_world, self.probe.quat_wxyz, [self._offsets_version]]
+        )
         key = self._cache_key
         cached = (
             key is not None
@@ -89,9 +139,11 @@ class PenaltyTerm:
         )
         if cached and self._cache is not None:
             return self._cache
-        contacts = detect_contacts(self.surface, positions, self.probe, self.distance)
-        depth = self.distance - contacts.distance  # > 0 for active springs
-        magnitude = self.stiffness * np.maximum(depth, 0.0)
+        # A point with an offset pushes until lambda + k_s delta = 0, a little outside.
+        reach = self.distance + float(self.offsets.max(initial=0.0)) / self.stiffness
+        contacts = detect_contacts(self.surface, positions, self.probe, reach)
+        depth = self.distance - contacts.distance  # > 0 past the contact distance
+        magnitude = np.maximum(self.offsets[contacts.points] + self.stiffness * depth, 0.0)
         node_count = positions.shape[0]
         point_forces = magnitude[:, None] * contacts.normal  # on the tissue, away from the probe
         tet_nodes = self.surface.embedding.tet_nodes[contacts.points]
@@ -99,7 +151,7 @@ class PenaltyTerm:
         forces = np.zeros((node_count, 3))
         np.add.at(forces, tet_nodes, weights[:, :, None] * point_forces[:, None, :])
         # k_s (w_a n)(w_b n)^T for every pair of the point's tet nodes; normal frozen.
-        active = depth > 0.0
+        active = magnitude > 0.0
         w, n, t = weights[active], contacts.normal[active], tet_nodes[active]
         blocks = (
             self.stiffness
@@ -113,7 +165,7 @@ class PenaltyTerm:
         row_axes = np.broadcast_to(np.arange(3)[None, None, None, :, None], blocks.shape)
         col_axes = np.broadcast_to(np.arange(3)[None, None, None, None, :], blocks.shape)
         evaluation = TermEvaluation(
-            energy_j=0.5 * self.stiffness * float(np.sum(np.maximum(depth, 0.0) ** 2)),
+            energy_j=0.5 * float(np.sum(magnitude**2)) / self.stiffness,
             forces=forces,
             stiffness_rows=(3 * row_nodes + row_axes).reshape(-1),
             stiffness_cols=(3 * col_nodes + col_axes).reshape(-1),
@@ -148,16 +200,49 @@ class PenaltyContact(FEContactModel):
         self.term = PenaltyTerm(
             self.surface, self.probe, self.stiffness_n_per_m, self.params.contact_distance_m
         )
+        self.augmentations = 0
 
     def _advance(
         self,
     ) -> tuple[StepStatus, NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
-        result = self.sim.step(terms=(self.term,))
+        augmented = self.params.augmented
+        if augmented is None:
+            augmented = self.sim.config.mode is IntegrationMode.ROBUST
+        result = self._augmented_step() if augmented else self.sim.step(terms=(self.term,))
         # Forces at the state the step ended in: the springs' final pull on the probe.
         self.term.evaluate(self.sim.positions)
         contacts, magnitudes = self.term.last_contacts, self.term.last_magnitudes
         points, forces = self.surface_points_on_probe(contacts, magnitudes)
-        return result.status, points, forces, _diagnostics(result, self.stiffness_n_per_m)
+        diagnostics = _diagnostics(result, self.stiffness_n_per_m)
+        diagnostics["augmentations"] = self.augmentations if augmented else 0
+        return result.status, points, forces, diagnostics
+
+    def _augmented_step(self) -> Any:
+        """Solve the step, re-solving from the same start with augmented offsets while a
+        point is deeper than the tolerance (see the module docstring)."""
+        sim = self.sim
+        started = time.perf_counter()
+        dt = sim.config.tissue_dt
+        dofs, targets = sim.constraints()
+        x0, v0 = sim.positions.copy(), sim.velocities.copy()
+        for round_index in range(self.params.max_augmentations + 1):
+            outcome = sim.integrator.step(x0, v0, dt, dofs, targets, (self.term,))
+            if outcome.status in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
+                break
+            penetration = self.term.penetration_m(outcome.positions)
+            if (
+                penetration <= self.params.penetration_tolerance_m
+                or round_index == self.params.max_augmentations
+            ):
+                break
+            self.term.augment(outcome.positions)
+        self.augmentations = round_index
+        return sim.commit(outcome, dt, started)
+
+    def _reset_tissue(self) -> None:
+        super()._reset_tissue()
+        self.term.offsets[:] = 0.0
+        self.term._offsets_version += 1
 
 
 def _mean_edge(surface: SurfacePoints, node_positions: NDArray[np.float64]) -> float:
