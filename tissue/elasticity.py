@@ -166,6 +166,7 @@ class Elasticity:
         grads, volume = kern.shape_gradients(mesh.nodes, tets)
         self._grads = grads
         self._volume = volume
+        self._grad_dots = kern.rest_grad_dots(grads)
         mu, lam, rho = materials.per_tet(region)
         self._mu = np.ascontiguousarray(mu)
         # ANP moves lam to the nodes: the per-tet law runs with lam = 0.
@@ -213,11 +214,12 @@ class Elasticity:
 
         # Per-tet work arrays, overwritten by every call (calls hold the GIL: no races).
         t = self.tet_count
-        self._deformation = np.empty((t, 9))
-        self._cofactor = np.empty((t, 9))
         self._coef = np.empty((t, 3))
         self._energy = np.empty(t)
         self._ratio = np.empty(t)
+        self._tet_forces = np.empty((t, 12))
+        self._cofactor_grads = np.empty((t, 12))
+        self._pair_vector = np.empty((t, 18))
         self._no_pressure = np.zeros(t)
         # Mode buffers are large (t x 72 doubles): allocated on the first projected call.
         self._mode_count = np.zeros(1, dtype=np.int64)
@@ -247,34 +249,39 @@ class Elasticity:
         """
         x = self._check_positions(positions)
         project = bool(project_psd) and bool(tangent)
-        energy = self._element_stage(x, project)
+        stage = kern.STAGE_TANGENT if tangent else kern.STAGE_FORCES
+        energy = self._element_stage(x, project, stage)
         forces = np.empty((self.node_count, 3))
-        data = np.zeros(self.nnz if tangent else 1)
-        kern.gather_elements(
-            self._tets,
-            self._grads,
+        kern.gather_forces(
             self._incidence_ptr,
             self._incidence_tet,
             self._incidence_local,
-            self._deformation,
-            self._cofactor,
-            self._coef,
-            project,
-            self._mode_count,
-            self._mode_vector,
-            self._block_ptr,
-            self._tet_block_pos,
+            self._tet_forces,
             self._node_order,
-            bool(tangent),
             forces,
-            data,
         )
         stiffness = None
         if tangent:
+            data = np.zeros(self.nnz)
+            kern.gather_elements(
+                self._incidence_ptr,
+                self._incidence_tet,
+                self._incidence_local,
+                self._grad_dots,
+                self._coef,
+                self._cofactor_grads,
+                self._pair_vector,
+                project,
+                self._mode_count,
+                self._mode_vector,
+                self._block_ptr,
+                self._tet_block_pos,
+                self._node_order,
+                data,
+            )
             if self.anti_locking is AntiLocking.ANP:
                 kern.anp_patch_gradients(
-                    self._grads,
-                    self._cofactor,
+                    self._cofactor_grads,
                     self._patch_tet_ptr,
                     self._patch_tet,
                     self._patch_tet_weight,
@@ -307,7 +314,12 @@ class Elasticity:
 
     def energy(self, positions: NDArray[np.float64]) -> float:
         """Total strain energy [J] at node positions [m], shape (node_count, 3)."""
-        return self._element_stage(self._check_positions(positions), False)
+        return self._element_stage(self._check_positions(positions), False, kern.STAGE_ENERGY)
+
+    def energy_and_min_volume_ratio(self, positions: NDArray[np.float64]) -> tuple[float, float]:
+        """(total strain energy [J], smallest det F) at node positions [m], in one pass."""
+        energy = self._element_stage(self._check_positions(positions), False, kern.STAGE_ENERGY)
+        return energy, float(self._ratio.min())
 
     def forces(self, positions: NDArray[np.float64]) -> NDArray[np.float64]:
         """Internal elastic forces -dE/dx [N], shape (node_count, 3), at positions [m]."""
@@ -333,8 +345,9 @@ class Elasticity:
             )
         return x
 
-    def _element_stage(self, x: NDArray[np.float64], project: bool) -> float:
-        """Run the ANP patch pass (if any) and the element pass; return the energy [J]."""
+    def _element_stage(self, x: NDArray[np.float64], project: bool, stage: int) -> float:
+        """Run the ANP patch pass (if any) and the element pass up to ``stage`` (a
+        ``fem_kernels.STAGE_*``); return the energy [J]."""
         if project and self._mode_count.shape[0] != self.tet_count:
             t = self.tet_count
             self._mode_count = np.zeros(t, dtype=np.int64)
@@ -369,11 +382,13 @@ class Elasticity:
             pressure,
             self._law_code,
             project,
-            self._deformation,
-            self._cofactor,
+            stage,
             self._coef,
             self._energy,
             self._ratio,
+            self._tet_forces,
+            self._cofactor_grads,
+            self._pair_vector,
             self._mode_count,
             self._mode_vector,
         )

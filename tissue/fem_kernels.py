@@ -337,6 +337,40 @@ def _deformation(x: np.ndarray, tets: np.ndarray, grads: np.ndarray, e: int, f: 
                 f[3 * i + j] += xi * grads[e, a, j]
 
 
+# What an element pass computes: energy and det F only, also the nodal forces, or also
+# what the tangent gather needs.
+STAGE_ENERGY = 0
+STAGE_FORCES = 1
+STAGE_TANGENT = 2
+# Local node pairs (a, c), a < c, in the order of ``pair_vector``; PAIR_INDEX[a, c] is the
+# pair of a != c.
+PAIRS = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np.int64)
+PAIR_INDEX = np.array([[0, 0, 1, 2], [0, 0, 3, 4], [1, 3, 0, 5], [2, 4, 5, 0]], dtype=np.int64)
+
+
+def rest_grad_dots(grads: NDArray[np.float64]) -> NDArray[np.float64]:
+    """G_a . G_c per tet for a <= c, row-major over the upper triangle, shape (tet_count, 10).
+
+    Summed as (x0 y0 + x1 y1) + x2 y2, as the element blocks use it.
+    """
+    out = np.empty((grads.shape[0], 10))
+    k = 0
+    for a in range(4):
+        for c in range(a, 4):
+            ga, gc = grads[:, a], grads[:, c]
+            out[:, k] = ga[:, 0] * gc[:, 0] + ga[:, 1] * gc[:, 1] + ga[:, 2] * gc[:, 2]
+            k += 1
+    return out
+
+
+@nb.njit(inline="always", cache=True, fastmath=False)
+def _dot_index(a: int, c: int) -> int:
+    """Column of G_a . G_c in ``rest_grad_dots`` (either order)."""
+    lo = min(a, c)
+    hi = max(a, c)
+    return 4 * lo - (lo * (lo - 1)) // 2 + hi - lo
+
+
 @nb.njit(parallel=True, cache=True, fastmath=False)
 def element_pass(
     x: np.ndarray,
@@ -348,15 +382,18 @@ def element_pass(
     pressure: np.ndarray,
     law: int,
     project: bool,
-    deformation: np.ndarray,
-    cofactor: np.ndarray,
+    stage: int,
     coef: np.ndarray,
     energy: np.ndarray,
     ratio: np.ndarray,
+    tet_forces: np.ndarray,
+    cofactor_grads: np.ndarray,
+    pair_vector: np.ndarray,
     mode_count: np.ndarray,
     mode_vector: np.ndarray,
 ) -> None:
-    """Per-tet F, cof F, energy and the scalars the assembly needs.
+    """Per-tet energy and det F; with ``stage`` >= STAGE_FORCES the nodal forces; with
+    STAGE_TANGENT what the tangent gather needs.
 
     Energy density W = mu/2 (I_C - 3) + psi(J) with
 
@@ -367,11 +404,14 @@ def element_pass(
 
     ``pressure`` [Pa] is added to psi'(J) (ANP's averaged nodal pressure; zeros otherwise).
 
-    Writes, per tet e: deformation[e] = F (9,), cofactor[e] = cof F = dJ/dF (9,),
-    coef[e] = (V mu, V (psi' + pressure), V psi'') [J], energy[e] = V W [J], ratio[e] = J,
-    and with ``project`` the negative modes m of dP/dF (eigenvalue l_m < 0, unit eigen-matrix
-    Q_m) as mode_count[e] and the 12-vectors mode_vector[e, m, 3 a + i] =
-    sqrt(-V l_m) (Q_m G_a)_i, so that the projected element matrix is K_e + sum_m c_m c_m^T.
+    Writes, per tet e: energy[e] = V W [J], ratio[e] = J; from STAGE_FORCES on,
+    tet_forces[e, 3 a + i] = V (mu F + psi' cof F) G_a [N] (minus the force on local node a);
+    at STAGE_TANGENT coef[e] = (V mu, V (psi' + pressure), V psi'') [J],
+    cofactor_grads[e, 3 a + i] = (cof F G_a)_i [1/m], pair_vector[e, 3 p + i] =
+    V psi' (F (G_a x G_c))_i for the pairs p = (a, c) of PAIRS, and with ``project`` the
+    negative modes m of dP/dF (eigenvalue l_m < 0, unit eigen-matrix Q_m) as mode_count[e]
+    and the 12-vectors mode_vector[e, m, 3 a + i] = sqrt(-V l_m) (Q_m G_a)_i, so that the
+    projected element matrix is K_e + sum_m c_m c_m^T.
     """
     tet_count = tets.shape[0]
     chunk_count = (tet_count + _CHUNK - 1) // _CHUNK
@@ -418,22 +458,50 @@ def element_pass(
                 dpsi = 0.0
                 ddpsi = 0.0
                 mm = 0.0
-            for i in range(9):
-                deformation[e, i] = f[i]
-            cofactor[e, 0] = c00
-            cofactor[e, 1] = c01
-            cofactor[e, 2] = c02
-            cofactor[e, 3] = c10
-            cofactor[e, 4] = c11
-            cofactor[e, 5] = c12
-            cofactor[e, 6] = c20
-            cofactor[e, 7] = c21
-            cofactor[e, 8] = c22
-            coef[e, 0] = vol * mm
-            coef[e, 1] = vol * dpsi
-            coef[e, 2] = vol * ddpsi
             energy[e] = vol * w
             ratio[e] = jac
+            if stage == STAGE_ENERGY:
+                continue
+            vmu = vol * mm
+            vdpsi = vol * dpsi
+            for a in range(4):
+                ga0 = grads[e, a, 0]
+                ga1 = grads[e, a, 1]
+                ga2 = grads[e, a, 2]
+                cga0 = c00 * ga0 + c01 * ga1 + c02 * ga2
+                cga1 = c10 * ga0 + c11 * ga1 + c12 * ga2
+                cga2 = c20 * ga0 + c21 * ga1 + c22 * ga2
+                fga0 = f[0] * ga0 + f[1] * ga1 + f[2] * ga2
+                fga1 = f[3] * ga0 + f[4] * ga1 + f[5] * ga2
+                fga2 = f[6] * ga0 + f[7] * ga1 + f[8] * ga2
+                tet_forces[e, 3 * a] = vmu * fga0 + vdpsi * cga0
+                tet_forces[e, 3 * a + 1] = vmu * fga1 + vdpsi * cga1
+                tet_forces[e, 3 * a + 2] = vmu * fga2 + vdpsi * cga2
+                if stage == STAGE_TANGENT:
+                    cofactor_grads[e, 3 * a] = cga0
+                    cofactor_grads[e, 3 * a + 1] = cga1
+                    cofactor_grads[e, 3 * a + 2] = cga2
+            if stage != STAGE_TANGENT:
+                continue
+            coef[e, 0] = vmu
+            coef[e, 1] = vdpsi
+            coef[e, 2] = vol * ddpsi
+            for pair in range(6):
+                a = PAIRS[pair, 0]
+                c = PAIRS[pair, 1]
+                ga0 = grads[e, a, 0]
+                ga1 = grads[e, a, 1]
+                ga2 = grads[e, a, 2]
+                gc0 = grads[e, c, 0]
+                gc1 = grads[e, c, 1]
+                gc2 = grads[e, c, 2]
+                # w = F (G_a x G_c); zero when a == c, negated when a and c swap.
+                x0 = ga1 * gc2 - ga2 * gc1
+                x1 = ga2 * gc0 - ga0 * gc2
+                x2 = ga0 * gc1 - ga1 * gc0
+                pair_vector[e, 3 * pair] = vdpsi * (f[0] * x0 + f[1] * x1 + f[2] * x2)
+                pair_vector[e, 3 * pair + 1] = vdpsi * (f[3] * x0 + f[4] * x1 + f[5] * x2)
+                pair_vector[e, 3 * pair + 2] = vdpsi * (f[6] * x0 + f[7] * x1 + f[8] * x2)
             if project:
                 count = 0
                 if mm > 0.0:
@@ -454,86 +522,95 @@ def element_pass(
 
 
 # ----------------------------------------------------------------------------------------
-# Row-parallel gather
+# Row-parallel gathers
+
+
+@nb.njit(parallel=True, cache=True, fastmath=False)
+def gather_forces(
+    incidence_ptr: np.ndarray,
+    incidence_tet: np.ndarray,
+    incidence_local: np.ndarray,
+    tet_forces: np.ndarray,
+    node_order: np.ndarray,
+    forces: np.ndarray,
+) -> None:
+    """Nodal forces -dE/dx [N] into ``forces``: minus the tets' contributions, summed in
+    incidence order."""
+    node_count = incidence_ptr.shape[0] - 1
+    for chunk in nb.prange((node_count + _CHUNK - 1) // _CHUNK):
+        for ordinal in range(chunk * _CHUNK, min(node_count, (chunk + 1) * _CHUNK)):
+            b = node_order[ordinal]
+            fx = 0.0
+            fy = 0.0
+            fz = 0.0
+            for k in range(incidence_ptr[b], incidence_ptr[b + 1]):
+                e = incidence_tet[k]
+                base = 3 * incidence_local[k]
+                fx -= tet_forces[e, base]
+                fy -= tet_forces[e, base + 1]
+                fz -= tet_forces[e, base + 2]
+            forces[b, 0] = fx
+            forces[b, 1] = fy
+            forces[b, 2] = fz
 
 
 @nb.njit(parallel=True, cache=True, fastmath=False)
 def gather_elements(
-    tets: np.ndarray,
-    grads: np.ndarray,
     incidence_ptr: np.ndarray,
     incidence_tet: np.ndarray,
     incidence_local: np.ndarray,
-    deformation: np.ndarray,
-    cofactor: np.ndarray,
+    grad_dots: np.ndarray,
     coef: np.ndarray,
+    cofactor_grads: np.ndarray,
+    pair_vector: np.ndarray,
     project: bool,
     mode_count: np.ndarray,
     mode_vector: np.ndarray,
     block_ptr: np.ndarray,
     tet_block_pos: np.ndarray,
     node_order: np.ndarray,
-    tangent: bool,
-    forces: np.ndarray,
     data: np.ndarray,
 ) -> None:
-    """Nodal forces -dE/dx [N] into ``forces`` and element blocks [N/m] added to ``data``.
+    """Element blocks [N/m] added to ``data``, one node row per parallel iteration.
 
-    One node row per parallel iteration: for every tet e touching node b (local index a),
-    f_b -= V (mu F + psi' cof F) G_a and, for each local c, the 3x3 block K_ac (module
-    docstring) plus, with ``project``, the mode corrections c_m,a c_m,c^T (element pass).
+    For every tet e touching node b (local index a) and each local c, the 3x3 block K_ac
+    (module docstring) from the element pass's per-tet quantities (G_a . G_c, cof F G_a,
+    V psi' F (G_a x G_c)) plus, with ``project``, the mode corrections c_m,a c_m,c^T.
     """
     node_count = incidence_ptr.shape[0] - 1
     for chunk in nb.prange((node_count + _CHUNK - 1) // _CHUNK):
         blk = np.empty(9)
         for ordinal in range(chunk * _CHUNK, min(node_count, (chunk + 1) * _CHUNK)):
             b = node_order[ordinal]
-            fx = 0.0
-            fy = 0.0
-            fz = 0.0
             row_base = 9 * block_ptr[b]
             stride = 3 * (block_ptr[b + 1] - block_ptr[b])
             for k in range(incidence_ptr[b], incidence_ptr[b + 1]):
                 e = incidence_tet[k]
                 la = incidence_local[k]
                 vmu = coef[e, 0]
-                vdpsi = coef[e, 1]
                 vddpsi = coef[e, 2]
-                ga0 = grads[e, la, 0]
-                ga1 = grads[e, la, 1]
-                ga2 = grads[e, la, 2]
-                fga0 = deformation[e, 0] * ga0 + deformation[e, 1] * ga1 + deformation[e, 2] * ga2
-                fga1 = deformation[e, 3] * ga0 + deformation[e, 4] * ga1 + deformation[e, 5] * ga2
-                fga2 = deformation[e, 6] * ga0 + deformation[e, 7] * ga1 + deformation[e, 8] * ga2
-                cga0 = cofactor[e, 0] * ga0 + cofactor[e, 1] * ga1 + cofactor[e, 2] * ga2
-                cga1 = cofactor[e, 3] * ga0 + cofactor[e, 4] * ga1 + cofactor[e, 5] * ga2
-                cga2 = cofactor[e, 6] * ga0 + cofactor[e, 7] * ga1 + cofactor[e, 8] * ga2
-                fx -= vmu * fga0 + vdpsi * cga0
-                fy -= vmu * fga1 + vdpsi * cga1
-                fz -= vmu * fga2 + vdpsi * cga2
-                if not tangent:
-                    continue
+                cga0 = cofactor_grads[e, 3 * la]
+                cga1 = cofactor_grads[e, 3 * la + 1]
+                cga2 = cofactor_grads[e, 3 * la + 2]
                 for lc in range(4):
-                    gc0 = grads[e, lc, 0]
-                    gc1 = grads[e, lc, 1]
-                    gc2 = grads[e, lc, 2]
-                    cgc0 = cofactor[e, 0] * gc0 + cofactor[e, 1] * gc1 + cofactor[e, 2] * gc2
-                    cgc1 = cofactor[e, 3] * gc0 + cofactor[e, 4] * gc1 + cofactor[e, 5] * gc2
-                    cgc2 = cofactor[e, 6] * gc0 + cofactor[e, 7] * gc1 + cofactor[e, 8] * gc2
-                    dot = vmu * (ga0 * gc0 + ga1 * gc1 + ga2 * gc2)
-                    # w = F (G_a x G_c); zero when a == c.
-                    x0 = ga1 * gc2 - ga2 * gc1
-                    x1 = ga2 * gc0 - ga0 * gc2
-                    x2 = ga0 * gc1 - ga1 * gc0
-                    w0 = vdpsi * (
-                        deformation[e, 0] * x0 + deformation[e, 1] * x1 + deformation[e, 2] * x2
-                    )
-                    w1 = vdpsi * (
-                        deformation[e, 3] * x0 + deformation[e, 4] * x1 + deformation[e, 5] * x2
-                    )
-                    w2 = vdpsi * (
-                        deformation[e, 6] * x0 + deformation[e, 7] * x1 + deformation[e, 8] * x2
-                    )
+                    cgc0 = cofactor_grads[e, 3 * lc]
+                    cgc1 = cofactor_grads[e, 3 * lc + 1]
+                    cgc2 = cofactor_grads[e, 3 * lc + 2]
+                    dot = vmu * grad_dots[e, _dot_index(la, lc)]
+                    if la == lc:
+                        w0 = 0.0
+                        w1 = 0.0
+                        w2 = 0.0
+                    else:
+                        pair = 3 * PAIR_INDEX[la, lc]
+                        if la < lc:
+                            w0 = pair_vector[e, pair]
+                            w1 = pair_vector[e, pair + 1]
+                            w2 = pair_vector[e, pair + 2]
+                        else:
+                            w0 = -pair_vector[e, pair]
+                            w1 = -pair_vector[e, pair + 1]
+                            w2 = -pair_vector[e, pair + 2]
                     blk[0] = dot + vddpsi * (cga0 * cgc0)
                     blk[1] = vddpsi * (cga0 * cgc1) + w2
                     blk[2] = vddpsi * (cga0 * cgc2) - w1
@@ -554,9 +631,6 @@ def gather_elements(
                     for i in range(3):
                         for j in range(3):
                             data[pos + i * stride + j] += blk[3 * i + j]
-            forces[b, 0] = fx
-            forces[b, 1] = fy
-            forces[b, 2] = fz
 
 
 # ----------------------------------------------------------------------------------------
@@ -612,8 +686,7 @@ def anp_patch_pass(
 
 @nb.njit(parallel=True, cache=True, fastmath=False)
 def anp_patch_gradients(
-    grads: np.ndarray,
-    cofactor: np.ndarray,
+    cofactor_grads: np.ndarray,
     patch_tet_ptr: np.ndarray,
     patch_tet: np.ndarray,
     patch_tet_weight: np.ndarray,
@@ -623,7 +696,8 @@ def anp_patch_gradients(
 ) -> None:
     """dJ_a/dx over each patch's nodes into ``gradient`` (patch node entries, 3) [1/m].
 
-    J_a = sum_e w_e J_e with w_e = V_e / (4 V_a), and dJ_e/dx_c = cof F_e G_c.
+    J_a = sum_e w_e J_e with w_e = V_e / (4 V_a), and dJ_e/dx_c = cof F_e G_c (the element
+    pass's ``cofactor_grads``).
     """
     for a in nb.prange(patch_tet_ptr.shape[0] - 1):
         base = patch_node_ptr[a]
@@ -636,15 +710,8 @@ def anp_patch_gradients(
             wt = patch_tet_weight[k]
             for lc in range(4):
                 row = base + patch_tet_local[k, lc]
-                g0 = grads[e, lc, 0]
-                g1 = grads[e, lc, 1]
-                g2 = grads[e, lc, 2]
                 for i in range(3):
-                    gradient[row, i] += wt * (
-                        cofactor[e, 3 * i] * g0
-                        + cofactor[e, 3 * i + 1] * g1
-                        + cofactor[e, 3 * i + 2] * g2
-                    )
+                    gradient[row, i] += wt * cofactor_grads[e, 3 * lc + i]
 
 
 @nb.njit(parallel=True, cache=True, fastmath=False)

@@ -729,11 +729,9 @@ class ImplicitIntegrator:
             return self._failed(x, v, StepStatus.DIVERGED)
         if float(np.max(np.linalg.norm(new_x - self._rest, axis=1))) > self._blow_up_m:
             return self._failed(x, v, StepStatus.DIVERGED)
-        if known is None:
-            min_ratio = float(self.elasticity.volume_ratios(new_x).min())
-            energy = self.elasticity.energy(new_x)
-        else:
-            energy, min_ratio = known
+        energy, min_ratio = (
+            known if known is not None else self.elasticity.energy_and_min_volume_ratio(new_x)
+        )
         status = StepStatus.INVERTED if min_ratio <= 0.0 else StepStatus.OK
         return StepOutcome(
             status=status,
