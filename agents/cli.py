@@ -73,7 +73,9 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     tissue_source = compress.add_mutually_exclusive_group()
     tissue_source.add_argument(
-        "--mesh", default="4126", help="phantom level (tet count) or a tet-mesh file meshio reads"
+        "--mesh",
+        default=None,
+        help="phantom level (tet count, default 4126) or a tet-mesh file meshio reads",
     )
     tissue_source.add_argument("--scene", type=Path, help="a directory in the published layout")
     compress.add_argument("--fixed-plane", help="with --mesh FILE: fix nodes on e.g. z=min")
@@ -96,6 +98,11 @@ def _build_parser() -> argparse.ArgumentParser:
     compress.add_argument("--mode", default="robust", help="paper | robust")
     compress.add_argument("--online", action="store_true", help="prescribed: update contact set")
     compress.add_argument("--json", type=Path, default=Path("compress.json"))
+    compress.add_argument(
+        "--case",
+        default=None,
+        help="run a named hard case (see probegym hard-cases) with --method and --mode",
+    )
 
     study = commands.add_parser(
         "study", help="the compression study of Tagliabue et al. 2020: tables, figures, report"
@@ -103,6 +110,16 @@ def _build_parser() -> argparse.ArgumentParser:
     from agents.study.command import add_study_arguments
 
     add_study_arguments(study)
+
+    hard = commands.add_parser(
+        "hard-cases", help="the hard-case catalogue: which methods stay stable where"
+    )
+    hard.add_argument("--cases", default=None, help="comma-separated names; default all small")
+    hard.add_argument("--methods", default="lm,penalty,prescribed,pbd", help="comma-separated")
+    hard.add_argument("--config", default="robust", help="paper | robust | paper,robust")
+    hard.add_argument("--level", type=_level, default=None, help="override every case's level")
+    hard.add_argument("--scene", type=Path, default=None, help="published scene (paper_level4)")
+    hard.add_argument("--json", type=Path, default=Path("hard_cases.json"))
 
     bench = commands.add_parser("bench", help="benchmarks that print a table and write JSON")
     bench_kinds = bench.add_subparsers(dest="bench", required=True, metavar="BENCHMARK")
@@ -136,6 +153,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             from agents.tissue_demo import run_demo
 
             return run_demo(level=args.level, depth_m=args.depth_mm * 1e-3, mode=args.mode)
+        if args.command == "compress" and args.case is not None:
+            from agents.hard_cases import run_catalogue
+            from tissue.phantom import parse_level
+
+            level = None if args.mesh is None else parse_level(args.mesh)
+            records = run_catalogue(
+                [args.case], [args.method], [args.mode], level, args.scene, args.json
+            )
+            return 0 if all(record["stable"] for record in records) else 1
         if args.command == "compress":
             from agents.compress_command import run_compress_command
 
@@ -144,6 +170,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             from agents.study.command import run_study_command
 
             return run_study_command(args)
+        if args.command == "hard-cases":
+            from agents.hard_cases import SMALL_CASES, run_catalogue
+            from tissue.integrator import IntegrationMode
+
+            configs = [IntegrationMode.parse(c).value for c in args.config.split(",")]
+            cases = args.cases.split(",") if args.cases else list(SMALL_CASES)
+            run_catalogue(
+                cases, args.methods.split(","), configs, args.level, args.scene, args.json
+            )
+            return 0
         if args.command == "mesh":
             return _mesh(args.level, args.out)
         if args.command == "bench" and args.bench == "tissue":

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -38,11 +39,20 @@ MAX_SETTLE_STEPS = 50
 
 @dataclass(frozen=True)
 class Waypoint:
-    """A probe pose to reach, and whether to settle and record a level there."""
+    """A probe pose to reach, and whether to settle and record a level there.
+
+    Attributes:
+        position: probe origin [m], (3,).
+        quat_wxyz: probe orientation, (4,).
+        depth_m: the depth to record a level at after settling; None: pass through.
+        speed_m_s: the probe's speed on the way here [m/s]; None: the run's speed;
+            ``math.inf``: in one step (a sudden jump or release).
+    """
 
     position: NDArray[np.float64]
     quat_wxyz: NDArray[np.float64]
     depth_m: float | None  # None: pass through without recording
+    speed_m_s: float | None = None
 
 
 def straight_path(
@@ -84,6 +94,7 @@ def run_compression(
     speed_m_s: float,
     progress: bool = False,
     monitor: StabilityMonitor | None = None,
+    observer: Callable[[ContactResult, NDArray[np.float64]], None] | None = None,
 ) -> dict[str, Any]:
     """Drive ``model`` through the waypoints; returns the JSON-ready record.
 
@@ -91,7 +102,8 @@ def run_compression(
     the record gains ``instability`` ({step, kind, detail}, or None) and
     ``stability_percent``: the share of the path's motion steps completed before it (the
     paper's stability metric; a failure while settling at a depth counts as failing on
-    that depth's last motion step).
+    that depth's last motion step). ``observer(result, probe_position)`` is called after
+    every step.
     """
     if not (np.isfinite(speed_m_s) and speed_m_s > 0):
         raise ConfigError(f"--speed must be a positive number of m/s; got {speed_m_s!r}")
@@ -105,7 +117,7 @@ def run_compression(
         )
     steps: list[dict[str, Any]] = []
     levels: list[dict[str, Any]] = []
-    counts = _motion_step_counts(start, stops, speed_m_s * dt)
+    counts = _motion_step_counts(start, stops, speed_m_s, dt)
     motion_done = 0
     instability: dict[str, Any] | None = None
 
@@ -113,6 +125,8 @@ def run_compression(
         nonlocal instability
         result = model.step(pose, pose_quat)
         steps.append(_step_record(result, pose))
+        if observer is not None:
+            observer(result, pose)
         if monitor is not None:
             found = monitor.check(result, model.node_positions, pose)
             if found is not None:
@@ -163,12 +177,15 @@ def run_compression(
     return record
 
 
-def _motion_step_counts(start: Waypoint, stops: list[Waypoint], step_m: float) -> list[int]:
-    """Steps to each waypoint from the previous one at ``step_m`` per step (>= 1 each)."""
+def _motion_step_counts(
+    start: Waypoint, stops: list[Waypoint], speed_m_s: float, dt: float
+) -> list[int]:
+    """Steps to each waypoint from the previous one at its speed (>= 1 each)."""
     counts = []
     position = start.position
     for stop in stops:
         distance = float(np.linalg.norm(stop.position - position))
+        step_m = (stop.speed_m_s if stop.speed_m_s is not None else speed_m_s) * dt
         counts.append(max(1, math.ceil(distance / step_m - 1e-9)))
         position = stop.position
     return counts

@@ -18,7 +18,7 @@ DEFAULT_DEPTHS_M = [0.01, 0.02, 0.025, 0.03]
 
 
 def _load_mesh(args: argparse.Namespace) -> TetMesh:
-    mesh_arg = str(args.mesh)
+    mesh_arg = str(args.mesh) if args.mesh is not None else "4126"
     if Path(mesh_arg).suffix:
         from tissue.mesh_io import load_tet_mesh
 

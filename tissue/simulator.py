@@ -232,8 +232,14 @@ class TissueSimulator:
         self.clear_prescribed()
         self.integrator.solver.forget()
 
-    def set_state(self, positions: ArrayLike, velocities: ArrayLike | None = None) -> None:
-        """Overwrite the state (for warm starts and restoring a checkpoint)."""
+    def set_state(
+        self,
+        positions: ArrayLike,
+        velocities: ArrayLike | None = None,
+        time_s: float | None = None,
+    ) -> None:
+        """Overwrite the state (for warm starts and restoring a checkpoint); ``time_s``
+        [s], if given, resets the clock too."""
         positions = np.array(positions, dtype=np.float64)
         if positions.shape != self._positions.shape or not np.all(np.isfinite(positions)):
             raise TissueInputError(
@@ -246,6 +252,8 @@ class TissueSimulator:
             if velocities is None
             else np.array(velocities, dtype=np.float64)
         )
+        if time_s is not None:
+            self._time = float(time_s)
 
     # ------------------------------------------------------------------ boundary conditions
 

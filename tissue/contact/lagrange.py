@@ -120,17 +120,52 @@ class LagrangeContact(FEContactModel):
         super().__init__(*args, **kwargs)
         # Warm start: last forces by surface point.
         self._warm = np.zeros(self.surface.count)
+        # The probe pose of the last step (a failed robust step is retried from it).
+        self._pose_before: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
 
     def _reset_tissue(self) -> None:
         super()._reset_tissue()
         self._warm = np.zeros(self.surface.count)
+        self._pose_before = None
 
     def _advance(
         self,
     ) -> tuple[StepStatus, NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
         if self.sim.config.mode is IntegrationMode.PAPER:
-            return self._paper_step()
-        return self._robust_step()
+            outcome = self._paper_step()
+        else:
+            outcome = self._subdivided_robust_step(self.sim.config.tissue_dt, 0)
+        self._pose_before = (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
+        return outcome
+
+    def _subdivided_robust_step(self, h: float, depth: int):
+        """A robust step of ``h`` [s]; if it does not converge, the state is restored and
+        two half steps are taken with the probe half-way, up to ``max_subdivisions`` deep
+        (as the integrator does for the tissue alone)."""
+        sim = self.sim
+        x0, v0, t0 = sim.positions.copy(), sim.velocities.copy(), sim.time_s
+        warm0 = self._warm.copy()
+        end = (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
+        outcome = self._robust_step(h)
+        if (
+            outcome[0] is not StepStatus.NOT_CONVERGED
+            or depth >= sim.config.max_subdivisions
+            or self._pose_before is None
+        ):
+            outcome[3]["subdivisions"] = depth
+            return outcome
+        sim.set_state(x0, v0, time_s=t0)
+        self._warm[:] = warm0
+        begin = self._pose_before
+        middle_quat = begin[1] + (end[1] if begin[1] @ end[1] >= 0 else -end[1])
+        self.probe.set_pose(0.5 * (begin[0] + end[0]), middle_quat / np.linalg.norm(middle_quat))
+        self._pose_before = begin
+        first = self._subdivided_robust_step(0.5 * h, depth + 1)
+        self._pose_before = (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
+        self.probe.set_pose(*end)
+        if first[0] in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
+            return first
+        return self._subdivided_robust_step(0.5 * h, depth + 1)
 
     # ------------------------------------------------------------------ shared
 
@@ -218,8 +253,8 @@ class LagrangeContact(FEContactModel):
 
     # ------------------------------------------------------------------ robust
 
-    def _robust_step(self):
-        sim, h = self.sim, self.sim.config.tissue_dt
+    def _robust_step(self, h: float):
+        sim = self.sim
         start = time.perf_counter()
         integrator, cfg = sim.integrator, sim.integrator.config
         x, v = sim.positions.copy(), sim.velocities.copy()

@@ -38,6 +38,8 @@ from tissue.contact.base import ContactMethod, SurfacePoints
 from tissue.contact.fe_model import FEContactModel, detect_contacts
 from tissue.errors import ConfigError
 from tissue.integrator import IntegrationMode, TermEvaluation
+from tissue.material import TissueMaterials
+from tissue.mesh import TetMesh
 from tissue.probe import Probe
 from tissue.status import StepStatus
 
@@ -191,11 +193,7 @@ class PenaltyContact(FEContactModel):
         super().__init__(*args, **kwargs)
         stiffness = self.params.stiffness_n_per_m
         if stiffness is None:
-            stiffness = (
-                DEFAULT_STIFFNESS_RATIO
-                * self.sim.materials.tissue.young_pa
-                * _mean_edge(self.surface, self.mesh.nodes)
-            )
+            stiffness = default_stiffness_n_per_m(self.surface, self.mesh, self.sim.materials)
         self.stiffness_n_per_m = float(stiffness)
         self.term = PenaltyTerm(
             self.surface, self.probe, self.stiffness_n_per_m, self.params.contact_distance_m
@@ -243,6 +241,14 @@ class PenaltyContact(FEContactModel):
         super()._reset_tissue()
         self.term.offsets[:] = 0.0
         self.term._offsets_version += 1
+
+
+def default_stiffness_n_per_m(
+    surface: SurfacePoints, mesh: TetMesh, materials: TissueMaterials
+) -> float:
+    """The default k_s [N/m]: ``DEFAULT_STIFFNESS_RATIO`` x E_tissue x the surface's mean
+    edge length at rest."""
+    return DEFAULT_STIFFNESS_RATIO * materials.tissue.young_pa * _mean_edge(surface, mesh.nodes)
 
 
 def _mean_edge(surface: SurfacePoints, node_positions: NDArray[np.float64]) -> float:

@@ -21,8 +21,9 @@ Where online prescribed displacement still differs from Lagrange multipliers:
 - contact acts on volume boundary nodes, not on the collision surface's points (so its
   penetration is measured on those nodes: on a coarse volume the finer collision surface
   bulges between them by up to the chord's sag, about 1 mm at 623 tets);
-- a node leaves contact one step after its reaction turns tensile, and enters only once the
-  probe has passed it (a penetration of up to one step's motion is corrected at entry).
+- a node leaves contact one step after its reaction turns tensile (at once when the probe
+  withdraws past it), and enters only once the probe has passed it (a penetration of up to
+  one step's motion is corrected at entry).
 """
 
 from __future__ import annotations
@@ -38,6 +39,10 @@ from tissue.contact.fe_model import FEContactModel
 from tissue.errors import ConfigError
 from tissue.mesh import boundary_faces
 from tissue.status import StepStatus
+
+# Online mode releases a node at once if the probe would pull it back by more than this [m]
+# in one step (a sudden withdrawal); sliding over the curved skin pulls far less per step.
+_PULL_RELEASE_M = 0.0005
 
 
 @dataclass(frozen=True)
@@ -146,6 +151,13 @@ class PrescribedContact(FEContactModel):
             # pulls it back towards the probe is in tension and is released.
             _, normal = self.probe.signed_distance_world(positions[self._nodes])
             keep = np.einsum("ij,ij->i", reaction, normal) > 0.0
+        # Contact only pushes: a node the probe's new pose would pull back out of the
+        # tissue by more than ``_PULL_RELEASE_M`` (a probe withdrawn faster than the skin
+        # can follow) is released now; slower withdrawal shows as tension one step later.
+        if self._nodes.size:
+            targets = self.probe.to_world_frame(self._local)
+            pressing = self.probe.pressing_direction_world()
+            keep &= (targets - positions[self._nodes]) @ pressing >= -_PULL_RELEASE_M
         nodes, local = self._nodes[keep], self._local[keep]
         candidates = np.setdiff1d(self.boundary_nodes, nodes)
         distance, normal = self.probe.signed_distance_world(positions[candidates])

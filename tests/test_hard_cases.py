@@ -1,0 +1,102 @@
+"""The hard-case catalogue: every method stays stable in the robust configuration.
+
+The fast tier runs the small cases on the 1,363-tet level; the slow tier the 4,126-tet level
+and the published scene's real level-4 poses. Known failures are strict xfails: each says
+what fails, and the test turns red the day it passes, so the catalogue stays honest.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from agents.hard_cases import HARD_CASES, SMALL_CASES, case_path, hard_case, run_hard_case
+from tissue.errors import ConfigError
+from tissue.phantom import breast_phantom
+from tissue.probe import parse_probe_spec
+
+METHODS = ("lm", "penalty", "prescribed", "pbd")
+# (case, method) -> why it still fails, measured on the 1,363-tet level.
+KNOWN_FAILURES_1363: dict[tuple[str, str], str] = {
+    ("sliding_40mm", "lm"): "a landmark jumps 1.7 mm in one 0.2 mm step as the face's edge "
+    "crosses a coarse facet",
+    ("sliding_40mm", "penalty"): "the same 1.7 mm landmark jump as LM",
+    ("sudden_release", "pbd"): "XPBD rings after the release: a landmark moves 2.2 mm in a "
+    "step 10+ steps later",
+}
+
+
+def _check(record: dict) -> None:
+    assert record["stable"], (
+        f"{record['case']} / {record['method']}: {record['instability']}, "
+        f"energy ok {record['energy_ok']}"
+    )
+    assert record["stability_percent"] == 100.0
+    assert record["energy_ok"]
+
+
+def _params(known: dict[tuple[str, str], str]) -> list:
+    return [
+        pytest.param(
+            case,
+            method,
+            marks=pytest.mark.xfail(strict=True, reason=known[(case, method)])
+            if (case, method) in known
+            else (),
+            id=f"{case}-{method}",
+        )
+        for case in SMALL_CASES
+        for method in METHODS
+    ]
+
+
+@pytest.mark.parametrize(("case", "method"), _params(KNOWN_FAILURES_1363))
+def test_small_cases_are_stable_in_robust_mode(case: str, method: str) -> None:
+    _check(run_hard_case(case, method, "robust", level=1363))
+
+
+def test_catalogue_names_every_scenario_of_the_issue() -> None:
+    expected = {
+        "fine_105k", "fine_176k", "deep_30mm", "paper_level4", "nu_0499", "stiff_lesions",
+        "penalty_soft", "penalty_stiff", "fast_probe", "tilted_30", "edge_contact",
+        "sliding_40mm", "sudden_release",
+    }  # fmt: skip
+    assert set(HARD_CASES) == expected
+    assert HARD_CASES["penalty_stiff"].penalty_stiffness_scale / (
+        HARD_CASES["penalty_soft"].penalty_stiffness_scale
+    ) == pytest.approx(1000.0)
+
+
+def test_paths_do_what_their_names_say() -> None:
+    mesh = breast_phantom(623)
+    shape = parse_probe_spec("face")
+    start, stops = case_path(hard_case("sudden_release"), mesh, shape)
+    assert stops[-1].speed_m_s == float("inf")
+    assert stops[-1].position == pytest.approx(start.position)
+    start, stops = case_path(hard_case("sliding_40mm"), mesh, shape)
+    assert abs(stops[-1].position[0] - stops[0].position[0]) == pytest.approx(0.04, abs=1e-3)
+    start, stops = case_path(hard_case("tilted_30"), mesh, shape)
+    direction = stops[0].position - start.position
+    cosine = -direction[2] / (direction @ direction) ** 0.5
+    assert cosine == pytest.approx(3**0.5 / 2, abs=1e-6)
+
+
+def test_unknown_case_is_a_clear_error() -> None:
+    with pytest.raises(ConfigError, match="unknown hard case 'deep'"):
+        run_hard_case("deep", "lm")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", METHODS)
+def test_small_cases_on_4126_tets(method: str) -> None:
+    failures = []
+    for case in SMALL_CASES:
+        record = run_hard_case(case, method, "robust", level=4126)
+        if not record["stable"]:
+            failures.append((case, record["instability"], record["energy_ok"]))
+    assert not failures
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", METHODS)
+def test_published_level4_poses(method: str, paper_scene_dir) -> None:
+    _check(run_hard_case("paper_level4", method, "robust", scene_dir=paper_scene_dir))
