@@ -579,7 +579,6 @@ def gather_elements(
     """
     node_count = incidence_ptr.shape[0] - 1
     for chunk in nb.prange((node_count + _CHUNK - 1) // _CHUNK):
-        blk = np.empty(9)
         for ordinal in range(chunk * _CHUNK, min(node_count, (chunk + 1) * _CHUNK)):
             b = node_order[ordinal]
             row_base = 9 * block_ptr[b]
@@ -611,26 +610,46 @@ def gather_elements(
                             w0 = -pair_vector[e, pair]
                             w1 = -pair_vector[e, pair + 1]
                             w2 = -pair_vector[e, pair + 2]
-                    blk[0] = dot + vddpsi * (cga0 * cgc0)
-                    blk[1] = vddpsi * (cga0 * cgc1) + w2
-                    blk[2] = vddpsi * (cga0 * cgc2) - w1
-                    blk[3] = vddpsi * (cga1 * cgc0) - w2
-                    blk[4] = dot + vddpsi * (cga1 * cgc1)
-                    blk[5] = vddpsi * (cga1 * cgc2) + w0
-                    blk[6] = vddpsi * (cga2 * cgc0) + w1
-                    blk[7] = vddpsi * (cga2 * cgc1) - w0
-                    blk[8] = dot + vddpsi * (cga2 * cgc2)
+                    # The block, row-major, in locals (a scratch array costs ~10 %).
+                    k00 = dot + vddpsi * (cga0 * cgc0)
+                    k01 = vddpsi * (cga0 * cgc1) + w2
+                    k02 = vddpsi * (cga0 * cgc2) - w1
+                    k10 = vddpsi * (cga1 * cgc0) - w2
+                    k11 = dot + vddpsi * (cga1 * cgc1)
+                    k12 = vddpsi * (cga1 * cgc2) + w0
+                    k20 = vddpsi * (cga2 * cgc0) + w1
+                    k21 = vddpsi * (cga2 * cgc1) - w0
+                    k22 = dot + vddpsi * (cga2 * cgc2)
                     if project:
                         # Adding c_a c_c^T (c = sqrt(-V l) Q G) removes the negative modes.
                         for mode in range(mode_count[e]):
-                            for i in range(3):
-                                cai = mode_vector[e, mode, 3 * la + i]
-                                for j in range(3):
-                                    blk[3 * i + j] += cai * mode_vector[e, mode, 3 * lc + j]
+                            ca0 = mode_vector[e, mode, 3 * la]
+                            ca1 = mode_vector[e, mode, 3 * la + 1]
+                            ca2 = mode_vector[e, mode, 3 * la + 2]
+                            cc0 = mode_vector[e, mode, 3 * lc]
+                            cc1 = mode_vector[e, mode, 3 * lc + 1]
+                            cc2 = mode_vector[e, mode, 3 * lc + 2]
+                            k00 += ca0 * cc0
+                            k01 += ca0 * cc1
+                            k02 += ca0 * cc2
+                            k10 += ca1 * cc0
+                            k11 += ca1 * cc1
+                            k12 += ca1 * cc2
+                            k20 += ca2 * cc0
+                            k21 += ca2 * cc1
+                            k22 += ca2 * cc2
                     pos = row_base + 3 * tet_block_pos[e, la, lc]
-                    for i in range(3):
-                        for j in range(3):
-                            data[pos + i * stride + j] += blk[3 * i + j]
+                    data[pos] += k00
+                    data[pos + 1] += k01
+                    data[pos + 2] += k02
+                    pos += stride
+                    data[pos] += k10
+                    data[pos + 1] += k11
+                    data[pos + 2] += k12
+                    pos += stride
+                    data[pos] += k20
+                    data[pos + 1] += k21
+                    data[pos + 2] += k22
 
 
 # ----------------------------------------------------------------------------------------

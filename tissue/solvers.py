@@ -410,6 +410,37 @@ def _eliminate(indptr, indices, data, constrained):  # pragma: no cover - compil
                 data[k] = 1.0 if col == row else 0.0
 
 
+@numba.njit(cache=True)
+def _add_known_columns(indptr, indices, data, values, out):  # pragma: no cover - compiled
+    """out += A values for a symmetric CSR A, visiting only the rows of nonzero values.
+
+    Row j of A is its column j, and rows are visited in increasing j: each out[i] receives
+    the nonzero terms in the order of a row-wise product (bitwise the same sums).
+    """
+    for j in range(values.shape[0]):
+        value = values[j]
+        if value == 0.0:
+            continue
+        for k in range(indptr[j], indptr[j + 1]):
+            out[indices[k]] += data[k] * value
+
+
+@numba.njit(parallel=True, cache=True)
+def _block_inverse_diagonal(upper_ptr, upper_cols, upper, out):  # pragma: no cover - compiled
+    """1 / A_ii where positive, else 1, from the diagonal blocks of node blocks; returns
+    False if some node row has no diagonal block (then use :func:`_inverse_diagonal`)."""
+    missing = 0
+    for b in numba.prange(upper_ptr.shape[0] - 1):
+        q = upper_ptr[b]
+        if q == upper_ptr[b + 1] or upper_cols[q] != 3 * b:
+            missing += 1
+            continue
+        for i in range(3):
+            value = upper[9 * q + 4 * i]
+            out[3 * b + i] = 1.0 / value if value > 0.0 else 1.0
+    return missing == 0
+
+
 @numba.njit(parallel=True, cache=True)
 def _inverse_diagonal(indptr, indices, data, out):  # pragma: no cover - compiled
     """1 / A_ii where positive, else 1 (Jacobi preconditioner; sorted CSR rows)."""
@@ -451,9 +482,10 @@ class ConstrainedSystem:
         values: NDArray[np.float64],
     ) -> None:
         values = np.where(constrained, values, 0.0)
-        # Move the known columns to the right-hand side before eliminating them.
-        known = np.empty_like(rhs)
-        _spmv(matrix.indptr, matrix.indices, matrix.data, values, known)
+        # Move the known columns to the right-hand side before eliminating them (by symmetry,
+        # the rows of the nonzero known values: a few probe nodes instead of the whole matrix).
+        known = np.zeros_like(rhs)
+        _add_known_columns(matrix.indptr, matrix.indices, matrix.data, values, known)
         self.original_rhs = rhs
         self.rhs = np.where(constrained, values, rhs - known)
         self.constrained = constrained
@@ -890,10 +922,13 @@ class LinearSolver:
         x = _start(system, initial_guess)
         matrix = system.matrix
         inv_diag = np.empty(matrix.shape[0])
-        _inverse_diagonal(matrix.indptr, matrix.indices, matrix.data, inv_diag)
         blocks = self._node_blocks(matrix)
         if blocks is not None:
             blocks.fill(matrix.data)
+        if blocks is None or not _block_inverse_diagonal(
+            blocks.upper_ptr, blocks.upper_cols, blocks.upper, inv_diag
+        ):
+            _inverse_diagonal(matrix.indptr, matrix.indices, matrix.data, inv_diag)
         iterations, residual = _jacobi_pcg(
             matrix.indptr,
             matrix.indices,
