@@ -110,10 +110,14 @@ def run_compression(
     dt = model.dt
     model.reset()
     model.probe.set_pose(start.position, start.quat_wxyz)
-    if model.penetration_max_m() > 0.0:
+    # Paths are planned against the collision surface, so that is what must start clear (a
+    # method holding the volume's boundary nodes may find one a fraction of a mm inside, where
+    # the surface's flat facets cut under the curved boundary; it pushes it out in step one).
+    distance, _ = model.probe.signed_distance_world(model.surface.positions(model.node_positions))
+    if distance.size and float(distance.min()) < 0.0:
         raise TissueInputError(
             "the probe starts inside the tissue (penetration "
-            f"{model.penetration_max_m() * 1e3:.2f} mm); start it clear of the surface"
+            f"{-float(distance.min()) * 1e3:.2f} mm); start it clear of the surface"
         )
     steps: list[dict[str, Any]] = []
     levels: list[dict[str, Any]] = []

@@ -62,6 +62,10 @@ from tissue.status import SEVERITY, StepStatus, worst
 _BLOW_UP_EXTENTS = 2.0
 # Armijo sufficient-decrease constant and the smallest line-search step tried.
 _ARMIJO_C = 1e-4
+# Floor of the force scale a Newton residual is relative to, as a fraction of
+# (mu + lambda)_max x extent^2: a tissue at rest with nothing acting has forces of round-off
+# size only (1e-14 of that unit on the published mesh), which must read as converged.
+RESIDUAL_SCALE_FLOOR = 1e-10
 _MIN_STEP_FRACTION = 2.0**-12
 # Relative Newton residual below which the exact (unprojected) tangent is tried first.
 _PROJECTION_SWITCH = 1e-1
@@ -598,9 +602,9 @@ class ImplicitIntegrator:
         else:
             evaluated = evaluate(y)
         energy, gradient, scale = evaluated
-        # Forces below this are round-off (at rest the residual is pure noise): 1e-12 of what
-        # the stiffest material's moduli exert over the mesh's extent squared.
-        scale_floor = 1e-12 * self._force_unit
+        # Forces below this are round-off (at rest the residual is pure noise): a fraction of
+        # what the stiffest material's moduli exert over the mesh's extent squared.
+        scale_floor = RESIDUAL_SCALE_FLOOR * self._force_unit
         total_linear = 0
         worst_linear = 0.0
         factorizations = 0

@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 from tissue.contact.base import ContactMethod
 from tissue.contact.fe_model import Contacts, FEContactModel, constraint_rows, detect_contacts
 from tissue.errors import ConfigError
-from tissue.integrator import IntegrationMode
+from tissue.integrator import RESIDUAL_SCALE_FLOOR, IntegrationMode
 from tissue.solvers import SolveReport
 from tissue.status import StepStatus
 
@@ -269,7 +269,7 @@ class LagrangeContact(FEContactModel):
             self.surface, y.reshape(-1, 3), self.probe, self.params.alarm_distance_m
         )
         rows = constraint_rows(self.surface, contacts, y.size, constrained)
-        scale_floor = 1e-10 * integrator._force_unit
+        scale_floor = RESIDUAL_SCALE_FLOOR * integrator._force_unit
         status = StepStatus.NOT_CONVERGED
         iterations, sweeps_total = 0, 0
         residual = np.inf
@@ -310,7 +310,7 @@ class LagrangeContact(FEContactModel):
             rows = constraint_rows(self.surface, contacts, y.size, constrained)
             forces = carried[contacts.points]
             kkt = gradient - rows.T @ forces
-            # A floor on the force scale: a tissue at rest with no load has
+            # The integrator's floor on the force scale: a tissue at rest with no load has
             # scale ~ 0, and its round-off gradient must not read as a large relative residual.
             residual = float(np.linalg.norm(kkt[free])) / max(scale, scale_floor)
             penetration = float(max(0.0, -(contacts.distance.min() if contacts.count else 0.0)))
