@@ -70,7 +70,7 @@ def benchmark_level(level: int, repeats: int) -> dict[str, float | int | str]:
     assembly_ms = _median_ms(samples)
 
     # Newton (robust) steps continuing the compression: converged steps, reusing factorisations.
-    samples, iterations, factorizations, statuses = [], [], [], []
+    samples, iterations, factorizations, statuses, residuals = [], [], [], [], []
     for _ in range(repeats):
         depth += STEP_ADVANCE_M
         _press(robust, probe_nodes, depth)
@@ -79,6 +79,7 @@ def benchmark_level(level: int, repeats: int) -> dict[str, float | int | str]:
         iterations.append(result.newton_iterations)
         factorizations.append(result.factorizations)
         statuses.append(result.status.value)
+        residuals.append(result.newton_residual)
     newton_step_ms = _median_ms(samples)
 
     # One simulator (and one factorisation) alive at a time: peak memory is per level.
@@ -128,6 +129,8 @@ def benchmark_level(level: int, repeats: int) -> dict[str, float | int | str]:
         "newton_iterations_median": float(np.median(iterations)),
         "newton_factorizations_per_step": float(np.mean(factorizations)),
         "newton_status": max(set(statuses), key=statuses.count),
+        # The largest relative Newton residual a timed step ended with (the tolerance is 1e-4).
+        "newton_residual_max": float(np.max(residuals)),
         "cg25_energy_error": cg25_energy_error,
         "cg25_relative_residual": report.relative_residual,
         "peak_rss_mb": peak_mb,
