@@ -90,10 +90,11 @@ KNOWN_FAILURES_4126: dict[tuple[str, str], str] = {
     ("sliding_40mm", "lm"): "a landmark jumps 1.3 mm in one 0.2 mm step while sliding",
     ("sliding_40mm", "penalty"): "the same 1.3 mm landmark jump as LM",
     # XPBD with 10 substeps is not converged per step: under large deformation its
-    # landmarks jump 1-2 mm in one step (deep_30mm: 1.46 mm at 14 mm deep). Only the tilted
-    # press stays within the continuity bound.
+    # landmarks jump 1-2 mm in one step (deep_30mm: 1.46 mm at 14 mm deep) or a surface tet
+    # inverts. Only the tilted press passes.
     **{
-        (case, "pbd"): "XPBD's landmarks jump 1-2 mm in one step under large deformation"
+        (case, "pbd"): "XPBD under large deformation: a landmark jumps 1-2 mm in a step, "
+        "or a tet inverts (fast_probe, sliding_40mm)"
         for case in (
             "deep_30mm",
             "nu_0499",
