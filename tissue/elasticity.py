@@ -198,7 +198,10 @@ class Elasticity:
         keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(block_ptr)) * n + block_cols
         query = np.repeat(tets, 4, axis=1) * n + np.tile(tets, (1, 4))
         pos = np.searchsorted(keys, query) - block_ptr[np.repeat(tets, 4, axis=1)]
-        self._tet_block_pos = pos.reshape(-1, 4, 4).astype(np.int32)
+        # Each stiffness block's tet contributions (the gather sums them in registers).
+        self._contribution_ptr, self._contributions = kern.block_contributions(
+            tets, block_ptr, pos.reshape(-1, 4, 4)
+        )
         if anp:
             self._patch_pair_pos = np.empty(int(self._patch_pair_ptr[-1]), dtype=np.int32)
             kern.patch_pair_positions(
@@ -262,11 +265,12 @@ class Elasticity:
         )
         stiffness = None
         if tangent:
-            data = np.zeros(self.nnz)
+            data = np.empty(self.nnz)  # every entry is written
             kern.gather_elements(
-                self._incidence_ptr,
-                self._incidence_tet,
-                self._incidence_local,
+                self._block_ptr,
+                self._node_order,
+                self._contribution_ptr,
+                self._contributions,
                 self._grad_dots,
                 self._coef,
                 self._cofactor_grads,
@@ -274,9 +278,6 @@ class Elasticity:
                 project,
                 self._mode_count,
                 self._mode_vector,
-                self._block_ptr,
-                self._tet_block_pos,
-                self._node_order,
                 data,
             )
             if self.anti_locking is AntiLocking.ANP:
