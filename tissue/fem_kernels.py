@@ -574,7 +574,7 @@ def block_contributions(
         tet_block_pos: position of node c's block in node a's row, (tet_count, 4, 4).
 
     Returns:
-        ptr (block_count + 1,) and codes: the contributions to block q are
+        ptr (block_count + 1,) and codes (int32 where they fit): the contributions to block q are
         codes[ptr[q]:ptr[q + 1]], each 16 e + 4 a + c (tet e, local row a, local column c),
         in increasing e.
     """
@@ -585,6 +585,8 @@ def block_contributions(
     block = block_ptr[tets[tet, local_row]] + tet_block_pos.reshape(-1)
     order = np.argsort(block * tet_count + tet, kind="stable")
     codes = 16 * tet[order] + 4 * local_row[order] + local_col[order]
+    if 16 * tet_count < 2**31:
+        codes = codes.astype(np.int32)  # half the memory the gather streams through
     block_count = int(block_ptr[-1])
     ptr = np.zeros(block_count + 1, dtype=np.int64)
     np.cumsum(np.bincount(block, minlength=block_count), out=ptr[1:])
