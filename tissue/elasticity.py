@@ -255,16 +255,17 @@ class Elasticity:
         stage = kern.STAGE_TANGENT if tangent else kern.STAGE_FORCES
         energy = self._element_stage(x, project, stage)
         forces = np.empty((self.node_count, 3))
-        kern.gather_forces(
-            self._incidence_ptr,
-            self._incidence_tet,
-            self._incidence_local,
-            self._tet_forces,
-            self._node_order,
-            forces,
-        )
         stiffness = None
-        if tangent:
+        if not tangent:
+            kern.gather_forces(
+                self._incidence_ptr,
+                self._incidence_tet,
+                self._incidence_local,
+                self._tet_forces,
+                self._node_order,
+                forces,
+            )
+        else:
             data = np.empty(self.nnz)  # every entry is written
             kern.gather_elements(
                 self._block_ptr,
@@ -278,6 +279,8 @@ class Elasticity:
                 project,
                 self._mode_count,
                 self._mode_vector,
+                self._tet_forces,
+                forces,
                 data,
             )
             if self.anti_locking is AntiLocking.ANP:

@@ -606,15 +606,20 @@ def gather_elements(
     project: bool,
     mode_count: np.ndarray,
     mode_vector: np.ndarray,
+    tet_forces: np.ndarray,
+    forces: np.ndarray,
     data: np.ndarray,
 ) -> None:
-    """Element blocks [N/m] written to ``data`` (every entry), one node row per iteration.
+    """Element blocks [N/m] written to ``data`` (every entry) and nodal forces -dE/dx [N]
+    to ``forces``, one node row per iteration.
 
     Each block (b, c) is the sum, in element order, of K_ac over the tets e holding b (local
     index a) and c (see :func:`block_contributions`): the module docstring's formula from
     the element pass's per-tet quantities (G_a . G_c, cof F G_a, V psi' F (G_a x G_c)) plus,
     with ``project``, the mode corrections c_m,a c_m,c^T. Summed in registers and stored
-    once (adding each contribution to memory cost ~15 % more here).
+    once (adding each contribution to memory cost ~15 % more here). The diagonal block's
+    contributions (a = c) are the node's incidences in element order: its force is summed
+    there, as :func:`gather_forces` does (bitwise the same).
     """
     node_count = block_ptr.shape[0] - 1
     for chunk in nb.prange((node_count + _CHUNK - 1) // _CHUNK):
@@ -623,6 +628,9 @@ def gather_elements(
             first = block_ptr[b]
             row_base = 9 * first
             stride = 3 * (block_ptr[b + 1] - first)
+            fx = 0.0
+            fy = 0.0
+            fz = 0.0
             for q in range(first, block_ptr[b + 1]):
                 k00 = 0.0
                 k01 = 0.0
@@ -638,6 +646,10 @@ def gather_elements(
                     e = code >> 4
                     la = (code >> 2) & 3
                     lc = code & 3
+                    if la == lc:
+                        fx -= tet_forces[e, 3 * la]
+                        fy -= tet_forces[e, 3 * la + 1]
+                        fz -= tet_forces[e, 3 * la + 2]
                     vmu = coef[e, 0]
                     vddpsi = coef[e, 2]
                     cga0 = cofactor_grads[e, 3 * la]
@@ -700,6 +712,9 @@ def gather_elements(
                 data[pos] = k20
                 data[pos + 1] = k21
                 data[pos + 2] = k22
+            forces[b, 0] = fx
+            forces[b, 1] = fy
+            forces[b, 2] = fz
 
 
 # ----------------------------------------------------------------------------------------
