@@ -261,6 +261,26 @@ def test_rest_state_is_stress_free_and_linearises_to_lame(
     )
 
 
+@pytest.mark.parametrize("law", LAWS)
+def test_small_strain_energy_keeps_its_digits(law: MaterialLaw) -> None:
+    """At 1e-6 and 1e-7 strain the energy is the linear-elastic u^T K u / 2 to 10 x strain.
+
+    The energy is O(strain^2) while the invariants are O(strain): written with F (I_C - 3,
+    (J - alpha)^2) the terms cancel and ~1e-4 relative round-off was left at 1e-7 strain,
+    enough to stall an energy line search near convergence.
+    """
+    mesh = box_mesh((2, 2, 2), jitter=0.2)
+    mat = materials(law, poisson=0.49)
+    el = Elasticity(mesh, mat)
+    reference = linear_elastic_stiffness(mesh, mat.tissue.mu_pa, mat.tissue.lambda_pa)
+    gradient = np.array([[1.0, 0.3, -0.2], [0.1, -0.5, 0.4], [0.25, 0.0, 0.7]])
+    for eps in (1e-6, 1e-7):
+        u = eps * (mesh.nodes @ gradient.T)
+        expected = 0.5 * u.ravel() @ reference @ u.ravel()
+        energy = el.evaluate(mesh.nodes + u, tangent=False).energy_j
+        assert energy == pytest.approx(expected, rel=10 * eps + 1e-9, abs=0.0)
+
+
 def test_lumped_mass_volume_and_pattern_reuse() -> None:
     mesh = box_mesh((2, 3, 2), size=(0.02, 0.03, 0.02), jitter=0.1)
     el = Elasticity(mesh, materials(MaterialLaw.STABLE))

@@ -338,6 +338,19 @@ def _deformation(x: np.ndarray, tets: np.ndarray, grads: np.ndarray, e: int, f: 
                 f[3 * i + j] += xi * grads[e, a, j]
 
 
+@nb.njit(inline="always", cache=True, fastmath=False)
+def _log1p_excess(d: float) -> float:
+    """d - ln(1 + d) without cancellation for small d (its series d^2/2 - d^3/3 + ...)."""
+    if abs(d) > 0.05:
+        return d - math.log1p(d)
+    total = 0.0
+    power = d
+    for k in range(2, 16):
+        power *= -d
+        total -= power / k
+    return total
+
+
 # What an element pass computes: energy and det F only, also the nodal forces, or also
 # what the tangent gather needs.
 STAGE_ENERGY = 0
@@ -443,23 +456,48 @@ def element_pass(
             c02 = f[3] * f[7] - f[6] * f[4]
             c12 = f[6] * f[1] - f[0] * f[7]
             c22 = f[0] * f[4] - f[3] * f[1]
-            jac = f[0] * c00 + f[3] * c10 + f[6] * c20
-            ic = 0.0
-            for i in range(9):
-                ic += f[i] * f[i]
+            # The energy is written in H = F - I so that its terms are O(|H|^2) and do not
+            # cancel: with F itself (I_C - 3 and (J - alpha)^2 - mu^2/lam'^2 each O(|H|)) a
+            # tet at 1e-4 strain kept only ~8 digits, and an energy line search on a large
+            # block stalled once the step's energy changes fell below that noise.
+            h0 = f[0] - 1.0
+            h4 = f[4] - 1.0
+            h8 = f[8] - 1.0
+            h_square = (
+                h0 * h0
+                + h4 * h4
+                + h8 * h8
+                + f[1] * f[1]
+                + f[2] * f[2]
+                + f[3] * f[3]
+                + f[5] * f[5]
+                + f[6] * f[6]
+                + f[7] * f[7]
+            )
+            # J - 1 = tr H + i2(H) + det H, i2 the sum of the principal 2x2 minors.
+            minors = h0 * h4 - f[1] * f[3] + h0 * h8 - f[2] * f[6] + h4 * h8 - f[5] * f[7]
+            det_h = (
+                h0 * (h4 * h8 - f[5] * f[7])
+                - f[1] * (f[3] * h8 - f[5] * f[6])
+                + f[2] * (f[3] * f[7] - h4 * f[6])
+            )
+            excess = minors + det_h  # J - 1 - tr H
+            dj = h0 + h4 + h8 + excess  # J - 1
+            jac = 1.0 + dj
             m = mu[e]
             lm = lam[e]
             vol = volume[e]
             if law == LAW_STABLE:
                 lp = lm + m
-                alpha = 1.0 + m / lp
-                w = 0.5 * m * (ic - 3.0) + 0.5 * lp * (jac - alpha) ** 2 - 0.5 * m * m / lp
-                dpsi = lp * (jac - alpha) + pressure[e]
+                # = mu/2 (I_C - 3) + lam'/2 (J - alpha)^2 - mu^2/(2 lam'), expanded in H.
+                w = 0.5 * m * h_square + 0.5 * lp * dj * dj - m * excess
+                dpsi = lp * dj - m + pressure[e]
                 ddpsi = lp
                 mm = m
             elif jac > 0.0:
-                lnj = math.log(jac)
-                w = 0.5 * m * (ic - 3.0) - m * lnj + 0.5 * lm * lnj * lnj
+                lnj = math.log1p(dj)
+                # = mu/2 (I_C - 3) - mu ln J + lam/2 (ln J)^2, expanded in H.
+                w = 0.5 * m * h_square + m * (_log1p_excess(dj) - excess) + 0.5 * lm * lnj * lnj
                 dpsi = (lm * lnj - m) / jac + pressure[e]
                 ddpsi = (lm * (1.0 - lnj) + m) / (jac * jac)
                 mm = m
