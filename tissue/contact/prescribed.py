@@ -10,8 +10,9 @@ keeping its offset from the probe; or a given set (the published scene ships one
 ``springnodes_500.txt``, which its loader maps to the nearest volume boundary nodes).
 
 Beyond the paper, ``online=True`` updates the set every step from the probe's footprint: a
-boundary node the probe's new pose would contain joins, projected onto the probe surface,
-and then sticks to the probe; a node whose reaction would pull the probe (tension) leaves.
+boundary node the probe's new pose would contain joins at the point where the probe first
+touched it (moved back along the pressing direction onto the probe surface), and then sticks
+to the probe; a node whose reaction would pull the probe (tension) leaves.
 This removes the paper's main limitation ("a priori knowledge of contact area needed").
 
 Where online prescribed displacement still differs from Lagrange multipliers:
@@ -163,10 +164,45 @@ class PrescribedContact(FEContactModel):
         distance, normal = self.probe.signed_distance_world(positions[candidates])
         entering = distance < 0.0
         if np.any(entering):
-            on_surface = (
-                positions[candidates[entering]] - distance[entering, None] * normal[entering]
+            on_surface = self._entry_points(
+                positions[candidates[entering]], distance[entering], normal[entering]
             )
             nodes = np.concatenate([nodes, candidates[entering]])
             local = np.concatenate([local, self.probe.to_probe_frame(on_surface)])
         order = np.argsort(nodes)
         self._nodes, self._local = nodes[order], local[order]
+
+    def _entry_points(
+        self,
+        points: NDArray[np.float64],
+        distance: NDArray[np.float64],
+        normal: NDArray[np.float64],
+    ) -> NDArray[np.float64]:
+        """Where the probe first touched each entering node [m], shape (k, 3).
+
+        A node the probe has passed lies inside it; the probe touched it where the node,
+        moved back along the probe's relative motion (the pressing direction), leaves the
+        probe: ``x + t p`` with the smallest t > 0 on the surface (bisection on the signed
+        distance). Projecting onto the nearest surface point instead drags nodes under a
+        rounded rim sideways, towards the rim, which over-stiffens the footprint. A node the
+        ray does not bring out within a few penetration depths (a probe moving sideways into
+        it) takes the nearest surface point.
+        """
+        pressing = self.probe.pressing_direction_world()
+        depth = -distance  # > 0
+        reach = 4.0 * depth + 1e-9
+        far = points + reach[:, None] * pressing
+        outside, _ = self.probe.signed_distance_world(far)
+        ray = outside >= 0.0
+        low = np.zeros_like(depth)
+        high = reach.copy()
+        # 30 halvings leave ~1e-9 of the bracket: far below any mesh's node spacing.
+        for _ in range(30):
+            middle = 0.5 * (low + high)
+            value, _ = self.probe.signed_distance_world(points + middle[:, None] * pressing)
+            inside = value < 0.0
+            low = np.where(inside, middle, low)
+            high = np.where(inside, high, middle)
+        entry = points + high[:, None] * pressing
+        nearest = points - distance[:, None] * normal
+        return np.where(ray[:, None], entry, nearest)
