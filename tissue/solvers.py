@@ -32,6 +32,7 @@ import ctypes
 import math
 import time
 import weakref
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -917,7 +918,11 @@ class LinearSolver:
     def _node_blocks(self, matrix: sp.csr_matrix) -> _NodeBlocks | None:
         """Node blocks of ``matrix``'s pattern, found once per pattern (the same arrays)."""
         cached = self._blocks
-        if cached is None or cached[0] is not matrix.indices or cached[1] is not matrix.indptr:
+        if (
+            cached is None
+            or not _same_buffer(cached[0], matrix.indices)
+            or not _same_buffer(cached[1], matrix.indptr)
+        ):
             cached = (matrix.indices, matrix.indptr, _NodeBlocks.of(matrix))
             self._blocks = cached
         return cached[2]
@@ -933,17 +938,18 @@ class LinearSolver:
             blocks.upper_ptr, blocks.upper_cols, blocks.upper, inv_diag
         ):
             _inverse_diagonal(matrix.indptr, matrix.indices, matrix.data, inv_diag)
-        iterations, residual = _jacobi_pcg(
-            matrix.indptr,
-            matrix.indices,
-            matrix.data,
-            *(blocks.arguments() if blocks is not None else _NO_BLOCKS),
-            system.rhs,
-            x,
-            inv_diag,
-            self.config.cg_max_iterations,
-            tolerance or self.config.cg_tolerance,
-        )
+        with _threads_for(x.shape[0]):
+            iterations, residual = _jacobi_pcg(
+                matrix.indptr,
+                matrix.indices,
+                matrix.data,
+                *(blocks.arguments() if blocks is not None else _NO_BLOCKS),
+                system.rhs,
+                x,
+                inv_diag,
+                self.config.cg_max_iterations,
+                tolerance or self.config.cg_tolerance,
+            )
         converged = residual <= (tolerance or self.config.cg_tolerance)
         return x, SolveReport(int(iterations), float(residual), bool(converged))
 
@@ -960,7 +966,8 @@ class LinearSolver:
         spent = 0
         if self._reuse is not None:
             x = _start(system, initial_guess)
-            iterations, residual = _factor_pcg(system, self._reuse, x, cap, tolerance)
+            with _threads_for(x.shape[0]):
+                iterations, residual = _factor_pcg(system, self._reuse, x, cap, tolerance)
             if residual <= tolerance:
                 return x, SolveReport(iterations, residual, True)
             spent = iterations
@@ -969,7 +976,8 @@ class LinearSolver:
         if preconditioner is not None:
             self._reuse = preconditioner
             x = _start(system, initial_guess)
-            iterations, residual = _factor_pcg(system, preconditioner, x, cap, tolerance)
+            with _threads_for(x.shape[0]):
+                iterations, residual = _factor_pcg(system, preconditioner, x, cap, tolerance)
             if residual <= tolerance:
                 return x, SolveReport(spent + iterations, residual, True, True)
         # Not positive definite, or CG still short of the tolerance: an exact factorisation
@@ -982,6 +990,27 @@ class LinearSolver:
             True,
             report.indefinite,
         )
+
+
+# Below this many unknowns CG runs on one thread. Each CG iteration is three or four parallel
+# regions; starting and joining the worker threads costs ~0.1 ms on two shared cores, so 25
+# iterations paid 5-10 ms of synchronisation on the small phantom levels (measured here on
+# 4.1k tets: a paper step 2.3 ms on one thread, 8-12 ms on two) while saving little work.
+SERIAL_CG_UNKNOWNS = 40_000
+
+
+@contextlib.contextmanager
+def _threads_for(unknowns: int) -> Iterator[None]:
+    """Run the enclosed compiled kernels on one thread when the system is small."""
+    previous = numba.get_num_threads()
+    if unknowns >= SERIAL_CG_UNKNOWNS or previous == 1:
+        yield
+        return
+    numba.set_num_threads(1)
+    try:
+        yield
+    finally:
+        numba.set_num_threads(previous)
 
 
 def _factor_pcg(
@@ -1023,6 +1052,17 @@ def _factor_pcg(
         iterations += 1
         residual = math.sqrt(r_square) / b_norm
     return iterations, residual
+
+
+def _same_buffer(kept: NDArray, other: NDArray) -> bool:
+    """``other`` is ``kept`` or a view of all of its memory (scipy wraps a matrix built from
+    another's index arrays in new array objects). ``kept`` is held by the caller, so its
+    memory cannot have been reused by another array."""
+    return kept is other or (
+        kept.ctypes.data == other.ctypes.data
+        and kept.shape == other.shape
+        and kept.dtype == other.dtype
+    )
 
 
 def _start(
