@@ -499,6 +499,18 @@ class ConstrainedSystem:
         _eliminate(matrix.indptr, matrix.indices, matrix.data, constrained)
         self.matrix = matrix
 
+    def with_rhs(self, rhs: NDArray[np.float64]) -> ConstrainedSystem:
+        """The same (already eliminated) matrix with right-hand side ``rhs`` and the known
+        dofs held at zero, shape (n,): A x = rhs for the increment a load adds."""
+        other = object.__new__(ConstrainedSystem)
+        other.matrix = self.matrix
+        other.constrained = self.constrained
+        other.values = np.zeros_like(rhs)
+        other.original_rhs = rhs
+        other.rhs = np.where(self.constrained, 0.0, rhs)
+        other._full_times_values = np.zeros_like(rhs)
+        return other
+
     def residual_norm(self, x: NDArray[np.float64]) -> float:
         """||b - A x|| / ||b|| of the eliminated system."""
         ax = np.empty_like(x)
@@ -765,18 +777,21 @@ class DirectFactorizer:
         # Both failed (a truly singular matrix): fall back to SuperLU, which may still cope.
         return _SuperLUFactorization(matrix), True
 
-    def factorize_preconditioner(self, matrix: sp.csr_matrix) -> Factorization | None:
+    def factorize_preconditioner(
+        self, matrix: sp.csr_matrix, single: bool = True
+    ) -> Factorization | None:
         """An SPD factorisation good enough to precondition CG, or None if not SPD.
 
-        With Pardiso it is computed in single precision: half the memory and about half the
-        time of a double one, and CG (in double precision, on the exact matrix) does not need
-        more from its preconditioner.
+        With Pardiso and ``single`` it is computed in single precision: half the memory and
+        about half the time of a double one, enough for the loose solves of inexact Newton
+        (CG runs in double precision on the exact matrix). Its solves are only accurate to
+        about cond(A) x 6e-8, though: for tight solves (contact compliances) ask for double.
         """
         if self.backend is DirectBackend.SUPERLU:
             factorization, indefinite = self.factorize(matrix)
             return None if indefinite else factorization
         try:
-            return self._factorize_pardiso(matrix, 2, True)
+            return self._factorize_pardiso(matrix, 2, single)
         except PardisoError:
             return None
 
@@ -876,6 +891,9 @@ class LinearSolver:
         self._factorizer: DirectFactorizer | None = None
         self._reuse: Factorization | None = None
         self.last_factorization: Factorization | None = None
+        # Kept factorisations in single precision (see DirectFactorizer.factorize_preconditioner);
+        # a user of tight reuse solves (Lagrange-multiplier contact) turns this off.
+        self.single_precision_preconditioner = True
         # (indices, indptr) of the last pattern CG saw, and its node blocks (or None).
         self._blocks: tuple[NDArray, NDArray, _NodeBlocks | None] | None = None
 
@@ -889,6 +907,25 @@ class LinearSolver:
         """Drop any factorisation kept across steps (after a reset or a large change)."""
         self._reuse = None
         self.last_factorization = None
+
+    @property
+    def kept_factorization(self) -> Factorization | None:
+        """The factorisation ``reuse`` solves precondition with (kept across steps), or None.
+
+        A new object whenever it is refactorised, so callers may cache what they derive
+        from it keyed on its identity.
+        """
+        return self._reuse
+
+    def refresh_kept_factorization(self, system: ConstrainedSystem) -> Factorization:
+        """Refactorise ``system``'s matrix now and keep it for later ``reuse`` solves."""
+        preconditioner = self.factorizer.factorize_preconditioner(
+            system.matrix, self.single_precision_preconditioner
+        )
+        if preconditioner is None:  # not SPD: an exact (indefinite) factorisation
+            preconditioner, _ = self.factorize(system)
+        self._reuse = preconditioner
+        return preconditioner
 
     def solve(
         self,
@@ -972,7 +1009,9 @@ class LinearSolver:
                 return x, SolveReport(iterations, residual, True)
             spent = iterations
         # CG stalled (or nothing to reuse): a fresh preconditioning factorisation.
-        preconditioner = self.factorizer.factorize_preconditioner(system.matrix)
+        preconditioner = self.factorizer.factorize_preconditioner(
+            system.matrix, self.single_precision_preconditioner
+        )
         if preconditioner is not None:
             self._reuse = preconditioner
             x = _start(system, initial_guess)
