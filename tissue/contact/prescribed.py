@@ -11,8 +11,8 @@ keeping its offset from the probe; or a given set (the published scene ships one
 
 Beyond the paper, ``online=True`` updates the set every step from the probe's footprint: a
 boundary node the probe's new pose would contain joins at the point where the probe first
-touched it (moved back along the pressing direction onto the probe surface), and then sticks
-to the probe; a node whose reaction would pull the probe (tension) leaves.
+touched it (moved back along the probe's motion onto its surface), and then sticks to the
+probe; a node whose reaction would pull the probe (tension) leaves.
 This removes the paper's main limitation ("a priori knowledge of contact area needed").
 
 Where online prescribed displacement still differs from Lagrange multipliers:
@@ -90,12 +90,17 @@ class PrescribedContact(FEContactModel):
         self._nodes = np.zeros(0, dtype=np.int64)
         self._local = np.zeros((0, 3))  # each node's position in the probe frame
         self._last_reaction: NDArray[np.float64] | None = None
+        # The probe's position at the last step and its translation since [m].
+        self._last_position: NDArray[np.float64] | None = None
+        self._step_motion: NDArray[np.float64] | None = None
 
     def _reset_tissue(self) -> None:
         super()._reset_tissue()
         self._nodes = np.zeros(0, dtype=np.int64)
         self._local = np.zeros((0, 3))
         self._last_reaction = None
+        self._last_position = None
+        self._step_motion = None
 
     def contact_points_world(self) -> NDArray[np.float64]:
         """The free boundary nodes [m], (k, 3): the points the method moves with the probe."""
@@ -109,6 +114,10 @@ class PrescribedContact(FEContactModel):
     def _advance(
         self,
     ) -> tuple[StepStatus, NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
+        position = self.probe.position_world.copy()
+        before = self._last_position
+        self._step_motion = None if before is None else position - before
+        self._last_position = position
         if self.params.online:
             self._update_online()
         elif self._nodes.size == 0:
@@ -180,18 +189,27 @@ class PrescribedContact(FEContactModel):
     ) -> NDArray[np.float64]:
         """Where the probe first touched each entering node [m], shape (k, 3).
 
-        A node the probe has passed lies inside it; the probe touched it where the node,
-        moved back along the probe's relative motion (the pressing direction), leaves the
-        probe: ``x + t p`` with the smallest t > 0 on the surface (bisection on the signed
-        distance). Projecting onto the nearest surface point instead drags nodes under a
-        rounded rim sideways, towards the rim, which over-stiffens the footprint. A node the
-        ray does not bring out within a few penetration depths (a probe moving sideways into
-        it) takes the nearest surface point.
+        A node the probe has passed lies inside it. When the probe translated along its
+        pressing direction p this step, it touched the node where the node, moved back
+        along its motion relative to the probe, leaves the probe: ``x + t p`` with t > 0 on
+        the surface (bisection on the signed distance). Projecting onto the nearest surface
+        point instead drags nodes under a rounded rim sideways, towards the rim, which
+        over-stiffens the footprint (Hertz: +4.2 % against +3.9 %). Otherwise, or if the ray
+        does not bring the node out within 1.5 times its penetration depth, the node takes
+        the nearest surface point.
         """
-        pressing = self.probe.pressing_direction_world()
+        nearest = points - distance[:, None] * normal
+        # Only for a probe translating along its pressing direction (within ~10 degrees):
+        # moving any other way, a node's first touch is not where the ray says (an edge
+        # pressing at 60 degrees put strain energy beyond the probe's work into the tissue).
+        direction = self.probe.pressing_direction_world()
+        motion = self._step_motion
+        length = float(np.linalg.norm(motion)) if motion is not None else 0.0
+        if motion is None or length <= 1e-12 or motion @ direction < 0.985 * length:
+            return nearest
         depth = -distance  # > 0
-        reach = 4.0 * depth + 1e-9
-        far = points + reach[:, None] * pressing
+        reach = 1.5 * depth + 1e-9
+        far = points + reach[:, None] * direction
         outside, _ = self.probe.signed_distance_world(far)
         ray = outside >= 0.0
         low = np.zeros_like(depth)
@@ -199,10 +217,9 @@ class PrescribedContact(FEContactModel):
         # 30 halvings leave ~1e-9 of the bracket: far below any mesh's node spacing.
         for _ in range(30):
             middle = 0.5 * (low + high)
-            value, _ = self.probe.signed_distance_world(points + middle[:, None] * pressing)
+            value, _ = self.probe.signed_distance_world(points + middle[:, None] * direction)
             inside = value < 0.0
             low = np.where(inside, middle, low)
             high = np.where(inside, high, middle)
-        entry = points + high[:, None] * pressing
-        nearest = points - distance[:, None] * normal
+        entry = points + high[:, None] * direction
         return np.where(ray[:, None], entry, nearest)
