@@ -45,6 +45,7 @@ from numpy.typing import NDArray
 from agents.compress import Waypoint, plan_scene, run_compression, straight_path
 from tissue.contact import make_contact_model
 from tissue.contact.base import ContactMethod, ContactModel, ContactResult, contact_surface
+from tissue.contact.fe_model import model_surface
 from tissue.contact.penalty import PenaltyParams, default_stiffness_n_per_m
 from tissue.contact.placement import first_contact_pose
 from tissue.contact.prescribed import PrescribedParams
@@ -150,7 +151,8 @@ def build_case_model(
         return make_contact_model(method_enum, mesh, shape, materials=materials)
     kwargs: dict[str, Any] = {"materials": materials, "config": SimulationConfig(mode=config)}
     if method_enum is ContactMethod.PENALTY:
-        default = default_stiffness_n_per_m(contact_surface(mesh), mesh, materials)
+        surface = model_surface(mesh, kwargs["config"])
+        default = default_stiffness_n_per_m(surface, mesh, materials)
         kwargs["params"] = PenaltyParams(stiffness_n_per_m=default * case.penalty_stiffness_scale)
     elif method_enum is ContactMethod.PRESCRIBED:
         kwargs["params"] = PrescribedParams(online=config == "robust")

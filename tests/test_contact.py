@@ -86,6 +86,30 @@ def test_lagrange_kept_factorization_matches_refactorizing(
     assert np.abs(x_kept - x_exact).max() < 1e-3 * 0.002
 
 
+def test_robust_contact_moves_to_a_much_finer_volume_boundary() -> None:
+    """A collision surface far coarser than the volume's boundary serves paper mode; robust
+    mode acts on the boundary nodes instead (the cure for fine_105k's inversions)."""
+    from tissue.contact.base import boundary_surface
+    from tissue.contact.fe_model import FINE_BOUNDARY_RATIO
+    from tissue.mesh import boundary_faces
+
+    fine = block_mesh((SIZE, SIZE, SIZE / 2), (12, 12, 6), origin_m=(-SIZE / 2, -SIZE / 2, 0.0))
+    coarse = block_mesh((SIZE, SIZE, SIZE / 2), (2, 2, 1), origin_m=(-SIZE / 2, -SIZE / 2, 0.0))
+    faces = boundary_faces(coarse.tets)
+    vertices, triangles = np.unique(faces, return_inverse=True)
+    mesh = fine.with_collision_surface(coarse.nodes[vertices], triangles.reshape(faces.shape))
+    assert boundary_surface(mesh).count >= FINE_BOUNDARY_RATIO * vertices.size
+    shape = SphereProbe(0.01)
+    for method in ("lm", "penalty"):
+        paper = _model(method, mesh, shape, mode="paper")
+        robust = _model(method, mesh, shape, mode="robust")
+        assert paper.surface.count == vertices.size
+        assert robust.surface.count == boundary_surface(mesh).count
+        result = _press(robust, shape, 0.001, 5, SIZE / 2)
+        assert result.status is StepStatus.OK
+        assert result.force_world[2] > 0.0
+
+
 def test_penalty_penetration_shrinks_as_stiffness_grows(block) -> None:
     shape = SphereProbe(0.01)
     penetrations, forces = [], []

@@ -98,6 +98,11 @@ def contact_surface(mesh: TetMesh) -> SurfacePoints:
     if mesh.collision_surface is not None:
         surface = mesh.collision_surface
         return SurfacePoints(surface.embedding, surface.triangles)
+    return boundary_surface(mesh)
+
+
+def boundary_surface(mesh: TetMesh) -> SurfacePoints:
+    """The volume's boundary faces as contact points (each node embedded with weight 1)."""
     faces = boundary_faces(mesh.tets)
     vertices = np.unique(faces)
     # Each boundary node is "embedded" in one tet that contains it, with weight 1 on itself.
