@@ -10,9 +10,10 @@ keeping its offset from the probe; or a given set (the published scene ships one
 ``springnodes_500.txt``, which its loader maps to the nearest volume boundary nodes).
 
 Beyond the paper, ``online=True`` updates the set every step from the probe's footprint: a
-boundary node the probe's new pose would contain joins at the point where the probe first
-touched it (moved back along the probe's motion onto its surface), and then sticks to the
-probe; a node whose reaction would pull the probe (tension) leaves.
+boundary node the probe's new pose would contain joins, and then sticks to the probe, at
+the point where the probe first touched it (for a probe pressing straight in: the node moved
+back along the motion onto the probe's surface; otherwise the nearest surface point); a node
+whose reaction would pull the probe (tension) leaves.
 This removes the paper's main limitation ("a priori knowledge of contact area needed").
 
 Where online prescribed displacement still differs from Lagrange multipliers:
