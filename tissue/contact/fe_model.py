@@ -20,9 +20,10 @@ from tissue.simulator import SimulationConfig, TissueSimulator
 # In robust mode, contact acts on the volume's boundary nodes instead of the collision
 # surface once the boundary has this many times more points. The collision surface (~500
 # points, as the paper's 1,004 triangles) embedded in a fine volume hands each point's force
-# to the four nodes of one small tet: on the 105k-tet phantom, LM and penalty inverted a
-# surface tet under the probe at 19 mm (fine_105k), and with the boundary's 5,558 points LM
-# passed all 20 mm (1.2 s per step, measured here). Only the 105k and 176k levels reach it.
+# to the four nodes of one small tet, the likely reason why on the 105k-tet phantom LM and
+# penalty both inverted a tet at the same step, 19 mm deep (fine_105k); with the boundary's
+# 5,558 points both passed all 20 mm (LM 1.2 s per step, measured here). Only the 105k and
+# 176k levels reach the ratio.
 FINE_BOUNDARY_RATIO = 8.0
 
 

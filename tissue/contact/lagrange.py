@@ -322,18 +322,23 @@ class LagrangeContact(FEContactModel):
         from ``factorization`` (of A itself), and c = A^-1 H^T lambda (eq. 11).
 
         W is built from batches of columns A^-1 H^T, never all held at once (thousands of
-        constraints on a fine mesh would take GBs), and c is one more solve.
+        constraints on a fine mesh would take GBs); c is those columns times lambda when they
+        fit in one batch, else one more solve.
         """
         count = contacts.count
         compliance = np.empty((count, count))
         transposed = rows.T.tocsc()
+        columns = np.zeros((rows.shape[1], 0))
         for start in range(0, count, _COLUMN_BATCH):
             stop = min(count, start + _COLUMN_BATCH)
             block = np.asfortranarray(transposed[:, start:stop].toarray())
             columns = np.asarray(factorization.solve(block)).reshape(rows.shape[1], -1)
             compliance[:, start:stop] = rows @ columns
         forces, sweeps = self._lcp(scale * compliance, offset, self._warm[contacts.points])
-        correction = np.asarray(factorization.solve(rows.T @ forces)).reshape(-1)
+        if count <= _COLUMN_BATCH:
+            correction = columns @ forces
+        else:
+            correction = np.asarray(factorization.solve(rows.T @ forces)).reshape(-1)
         return forces, correction, {"pgs_sweeps": sweeps, "response_rounds": 1}
 
     def _kept_response(
@@ -375,7 +380,7 @@ class LagrangeContact(FEContactModel):
             compliance = self._compliance.matrix(
                 factorization, contacts.points, contacts.normal, system.constrained
             )
-            new, sweeps = self._lcp(compliance.copy(), gaps - compliance @ forces, guess)
+            new, sweeps = self._lcp(compliance, gaps - compliance @ forces, guess)
             sweeps_total += sweeps
             predicted = gaps + compliance @ (new - forces)
             forces, guess = new, new
