@@ -25,6 +25,7 @@ from tissue.contact.stability import StabilityMonitor
 from tissue.errors import ConfigError, TissueInputError
 from tissue.material import NeoHookean, TissueMaterials
 from tissue.mesh import TetMesh
+from tissue.pbd import PBDConfig
 from tissue.probe import Probe, ProbeShape
 from tissue.simulator import SimulationConfig
 from tissue.status import StepStatus, worst
@@ -256,7 +257,9 @@ def build_model(
     )
     materials = TissueMaterials(tissue=tissue)
     if method_enum is ContactMethod.PBD:
-        return make_contact_model(method_enum, mesh, shape, materials=materials)
+        return make_contact_model(
+            method_enum, mesh, shape, materials=materials, config=PBDConfig.for_mode(mode)
+        )
     kwargs: dict[str, Any] = {"materials": materials, "config": SimulationConfig(mode=mode)}
     if method_enum is ContactMethod.PRESCRIBED:
         kwargs["params"] = PrescribedParams(online=online, node_set=node_set)

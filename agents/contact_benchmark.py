@@ -21,8 +21,7 @@ Every strategy sees the same probe path. Per method, mode and level one record:
 
 Methods: ``penalty``, ``lm``, ``prescribed`` (always with ``online=True``: the node set
 follows the probe's footprint, as a user without a pre-computed node set would run it) and
-``pbd`` when :mod:`tissue.pbd` can be imported. PBD has no paper/robust mode; it runs once,
-recorded with mode ``"n/a"``.
+``pbd`` (paper: 10 substeps; robust: 40, :meth:`tissue.pbd.PBDConfig.for_mode`).
 
 Targets of issue 3, printed against the measurements: penalty and prescribed in paper mode
 <= 5 ms per step up to 4.1k tets and <= 20 ms (real time at 0.02 s) up to 26k tets; LM <= 2 x
@@ -43,6 +42,7 @@ import numpy as np
 
 from tissue.contact import make_contact_model
 from tissue.contact.prescribed import PrescribedParams
+from tissue.pbd import PBDConfig
 from tissue.phantom import PHANTOM_LEVELS, breast_phantom
 from tissue.probe import LinearProbeFace, Probe
 from tissue.simulator import SimulationConfig
@@ -67,16 +67,6 @@ TARGET_REALTIME_MS = 20.0
 TARGET_LM_OVER_PENALTY = 2.0
 # Steps in contact of the untimed warm-up run of each method and mode.
 WARMUP_STEPS = 3
-# The mode PBD is recorded under (it has no paper/robust distinction).
-PBD_MODE = "n/a"
-
-
-def _pbd_available() -> bool:
-    try:
-        import tissue.pbd  # noqa: F401
-    except ImportError:
-        return False
-    return True
 
 
 def _apex_probe(mesh: Any) -> Probe:
@@ -92,15 +82,14 @@ def benchmark_one(method: str, mode: str, level: int, steps: int) -> dict[str, A
 
     Args:
         method: ``penalty``, ``lm``, ``prescribed`` (run online) or ``pbd``.
-        mode: ``paper`` or ``robust`` (ignored for ``pbd``).
+        mode: ``paper`` or ``robust``.
         level: phantom level (tet count of :data:`tissue.phantom.PHANTOM_LEVELS`).
         steps: probe advances of 0.2 mm after the first step in contact.
     """
     mesh = breast_phantom(level)
     shape = LinearProbeFace()
     kwargs: dict[str, Any] = {}
-    if method != "pbd":
-        kwargs["config"] = SimulationConfig(mode=mode)
+    kwargs["config"] = PBDConfig.for_mode(mode) if method == "pbd" else SimulationConfig(mode=mode)
     if method == "prescribed":
         kwargs["params"] = PrescribedParams(online=True)
     model = make_contact_model(method, mesh, shape, **kwargs)
@@ -145,7 +134,7 @@ def benchmark_one(method: str, mode: str, level: int, steps: int) -> dict[str, A
     contact_step = first_contact_step if first_contact_step is not None else step
     return {
         "method": method,
-        "mode": PBD_MODE if method == "pbd" else mode,
+        "mode": mode,
         "level": level,
         "tets": mesh.tet_count,
         "nodes": mesh.node_count,
@@ -289,8 +278,7 @@ def run_contact_benchmark(
 
     Args:
         levels: phantom levels (tet counts); None: 623 to 26,220.
-        methods: any of ``penalty``, ``lm``, ``prescribed``, ``pbd``; None: all four (PBD
-            skipped, with a note, when :mod:`tissue.pbd` is missing).
+        methods: any of ``penalty``, ``lm``, ``prescribed``, ``pbd``; None: all four.
         modes: integration modes, ``paper`` and/or ``robust``.
         json_path: where the records go; rewritten after every record.
         steps: probe advances of 0.2 mm after first contact (50: a 10 mm press).
@@ -301,9 +289,6 @@ def run_contact_benchmark(
     levels = list(levels or DEFAULT_LEVELS)
     methods = list(methods or DEFAULT_METHODS)
     modes = list(modes or DEFAULT_MODES)
-    if "pbd" in methods and not _pbd_available():
-        print("note: tissue.pbd is not importable here; skipping the pbd method")
-        methods = [m for m in methods if m != "pbd"]
     print(
         f"probegym bench contact — face into the apex at 0.01 m/s, {steps} steps "
         f"({steps * STEP_ADVANCE_M * 1e3:.0f} mm) beyond first contact "
@@ -311,12 +296,12 @@ def run_contact_benchmark(
     )
     # Compile (or load from numba's cache) every kernel the runs use before timing anything.
     for method in methods:
-        for mode in [PBD_MODE] if method == "pbd" else modes:
+        for mode in modes:
             benchmark_one(method, mode, min(PHANTOM_LEVELS), WARMUP_STEPS)
     records: list[dict[str, Any]] = []
     for level in levels:
         for method in methods:
-            for mode in [PBD_MODE] if method == "pbd" else modes:
+            for mode in modes:
                 record = benchmark_one(method, mode, level, steps)
                 records.append(record)
                 print(

@@ -53,6 +53,7 @@ from tissue.contact.stability import StabilityMonitor
 from tissue.errors import ConfigError
 from tissue.material import NeoHookean, TissueMaterials
 from tissue.mesh import TetMesh
+from tissue.pbd import PBDConfig
 from tissue.probe import Probe, ProbeShape, parse_probe_spec
 from tissue.simulator import SimulationConfig
 
@@ -148,7 +149,9 @@ def build_case_model(
         lesion_stiffness_ratio=case.lesion_stiffness_ratio,
     )
     if method_enum is ContactMethod.PBD:
-        return make_contact_model(method_enum, mesh, shape, materials=materials)
+        return make_contact_model(
+            method_enum, mesh, shape, materials=materials, config=PBDConfig.for_mode(config)
+        )
     kwargs: dict[str, Any] = {"materials": materials, "config": SimulationConfig(mode=config)}
     if method_enum is ContactMethod.PENALTY:
         surface = model_surface(mesh, kwargs["config"])
@@ -346,8 +349,6 @@ def run_catalogue(
     for name in cases:
         for method in methods:
             for config in configs:
-                if method == "pbd" and config != configs[0]:
-                    continue  # PBD has no paper/robust variants
                 record = run_hard_case(name, method, config, level, scene_dir)
                 records.append(record)
                 found = record["instability"]

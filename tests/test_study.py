@@ -171,11 +171,14 @@ def test_pareto_front_marks_undominated_points() -> None:
     assert pareto_front(points) == [0, 1, 3]
 
 
-def test_cells_run_pbd_once_and_coarse_levels_first() -> None:
+def test_cells_cover_every_method_and_configuration_in_level_order() -> None:
     cells = StudySpec(levels=(1363, 623), lesions=(1,)).cells((1,))
-    assert [c.level for c in cells[:7]] == [1363] * 7  # the order given
+    assert [c.level for c in cells[:8]] == [1363] * 8  # the order given
+    assert len(cells) == 16 and len({c.key for c in cells}) == 16
     pbd = [c for c in cells if c.method is ContactMethod.PBD]
-    assert len(pbd) == 2 and all(c.config is StudyConfig.PAPER for c in pbd)
+    assert {(c.config, c.level) for c in pbd} == {
+        (config, level) for config in StudyConfig for level in (1363, 623)
+    }
     assert Cell(StudyConfig.ROBUST, ContactMethod.LM, 623, 3).key == "robust/lm/623/3"
 
 

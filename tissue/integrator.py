@@ -68,7 +68,7 @@ _ARMIJO_C = 1e-4
 RESIDUAL_SCALE_FLOOR = 1e-10
 _MIN_STEP_FRACTION = 2.0**-12
 # Relative Newton residual below which the exact (unprojected) tangent is tried first.
-_PROJECTION_SWITCH = 1e-1
+PROJECTION_SWITCH = 1e-1
 # A Newton direction is solved no more accurately than needed to bring the residual to this
 # fraction of the Newton tolerance: the new residual is, to first order, the linear one
 # (176k-tet phantom, steady compression: relative linear residual 6.3e-2 x ||rhs|| / force
@@ -626,7 +626,7 @@ class ImplicitIntegrator:
             # (the clamped Hessian is not the true one): far from the solution we project,
             # near it we use the exact tangent, falling back to projection whenever the exact
             # one does not give a descent direction.
-            project = bool(cfg.project_psd) and relative > _PROJECTION_SWITCH
+            project = bool(cfg.project_psd) and relative > PROJECTION_SWITCH
             # Inexact Newton: solve only as accurately as the current residual deserves, and
             # never beyond what brings the residual well under the Newton tolerance.
             tolerance = min(1e-2, max(0.1 * relative, 1e-10))

@@ -186,9 +186,16 @@ def _references(
         record, fresh = future.result()
         references[lesion] = record
         computed += int(fresh)
+        found = record.get("instability")
         log(
             f"reference lesion {lesion} ({level_label(spec.reference_level)}): "
             + (f"computed in {record['wall_s']:.1f} s" if fresh else "cached")
+            + (
+                f"; it stopped at step {found['step']} ({found['kind']}: {found['detail']}), "
+                f"so it holds {len(record['tracked_m'])} of {len(spec.depths_m)} depths"
+                if found
+                else ""
+            )
         )
     return references, computed
 

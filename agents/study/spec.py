@@ -44,7 +44,8 @@ class StudyConfig(Choice):
     moves the node set chosen at first contact (or the published one).
     ``robust``: Newton with line search to a tolerance, PSD-projected tangents, step
     subdivision; prescribed displacement updates its node set online each step.
-    PBD has no such choice: it runs once, and its cell is shown in both column groups.
+    PBD: ``paper`` runs the 10-substep, FleX-like baseline, ``robust`` 60 substeps
+    (:meth:`tissue.pbd.PBDConfig.for_mode`).
     """
 
     PAPER = "paper"
@@ -146,14 +147,12 @@ class StudySpec:
             )
 
     def cells(self, lesion_ids: tuple[int, ...]) -> list[Cell]:
-        """Every cell, coarse levels first (results arrive early); PBD in one configuration."""
+        """Every cell, coarse levels first (results arrive early)."""
         cells = []
         for level in self.levels:
             for lesion in lesion_ids:
                 for config in self.configs:
                     for method in self.methods:
-                        if method is ContactMethod.PBD and config is not self.configs[0]:
-                            continue  # PBD has no paper/robust variants
                         cells.append(Cell(config, method, level, lesion))
         return cells
 
