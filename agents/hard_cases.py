@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from agents.compress import Waypoint, plan_scene, run_compression, straight_path
 from tissue.contact import make_contact_model
@@ -54,7 +55,7 @@ from tissue.errors import ConfigError
 from tissue.material import NeoHookean, TissueMaterials
 from tissue.mesh import TetMesh
 from tissue.pbd import PBDConfig
-from tissue.probe import Probe, ProbeShape, parse_probe_spec
+from tissue.probe import Probe, ProbeShape, parse_probe_spec, quat_to_matrix
 from tissue.simulator import SimulationConfig
 
 # The energy check allows this much above the work done, relative and absolute [J].
@@ -307,14 +308,21 @@ class _EnergyCheck:
         self.ok = True
         self.subdivided_steps = 0
         self._last_position = np.asarray(start_position, dtype=np.float64).copy()
+        self._last_rotation = quat_to_matrix(model.probe.quat_wxyz)
 
     def __call__(self, result: ContactResult, position: NDArray[np.float64]) -> None:
         if result.diagnostics.get("subdivisions"):
             self.subdivided_steps += 1
-        # Backward Euler's discrete work: the end-of-step force times the step's motion (a
-        # probe withdrawn in one step, whose end force is 0, takes no work back).
+        # Backward Euler's discrete work: the end-of-step wrench times the step's motion (a
+        # probe withdrawn in one step, whose end force is 0, takes no work back). The torque
+        # is about the probe origin, so the two terms are the translation's and the
+        # rotation's (the published poses turn the probe by up to a few degrees a level).
+        rotation = quat_to_matrix(self.model.probe.quat_wxyz)
+        turned = Rotation.from_matrix(rotation @ self._last_rotation.T).as_rotvec()
         self.work_j += float(-result.force_world @ (position - self._last_position))
+        self.work_j += float(-result.torque_world @ turned)
         self._last_position = np.asarray(position).copy()
+        self._last_rotation = rotation
         if self.sim is None or result.status.is_failure:
             return
         stored = self.sim.elastic_energy_j() + self.sim.kinetic_energy_j()
