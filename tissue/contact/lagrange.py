@@ -505,11 +505,12 @@ class LagrangeContact(FEContactModel):
             # last KKT residual, as the integrator's own Newton does.
             tolerance = min(1e-2, max(0.1 * residual, 1e-10))
             # As the integrator: projected (PSD) element tangents far from the solution, the
-            # exact tangent near it (projection costs quadratic convergence: a 2 mm
-            # quasi-static step on the 176k level took 17 iterations at a residual ratio of
-            # ~0.55 with it), the projected one again where the exact one is not definite
-            # (W = H A^-1 H^T must be positive for PGS).
-            project = bool(cfg.project_psd) and residual > PROJECTION_SWITCH
+            # exact tangent near it (projection costs quadratic convergence), the projected
+            # one again where the exact one is not definite (W = H A^-1 H^T must be positive
+            # for PGS). Not with a kept factorisation: alternating the two tangents made its
+            # W~ miss the exact compliance every step (105k tets: 3 response rounds and two
+            # refactorisations a step, 10-12 s instead of ~1 s).
+            project = keep or (bool(cfg.project_psd) and residual > PROJECTION_SWITCH)
             try:
                 while True:
                     system = potential.hessian_system(y, -gradient, project=project)
