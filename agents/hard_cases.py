@@ -271,7 +271,7 @@ def run_hard_case(
     if case.path in ("release", "slide") and stops[-1].depth_m is None:
         stops = [*stops, replace(stops[-1], depth_m=0.0)]
     monitor = StabilityMonitor(method, mesh.nodes, start.position)
-    energy = _EnergyCheck(model, start.position)
+    energy = _EnergyCheck(model, start.position, start.quat_wxyz)
     started = time.perf_counter()
     run = run_compression(model, start, stops, case.speed_m_s, monitor=monitor, observer=energy)
     times = [step["compute_ms"] for step in run["steps"]]
@@ -300,7 +300,12 @@ def run_hard_case(
 class _EnergyCheck:
     """Elastic + kinetic energy <= work done by the probe (FE methods; PBD has no energy)."""
 
-    def __init__(self, model: ContactModel, start_position: NDArray[np.float64]) -> None:
+    def __init__(
+        self,
+        model: ContactModel,
+        start_position: NDArray[np.float64],
+        start_quat: NDArray[np.float64],
+    ) -> None:
         self.model = model
         self.sim = getattr(model, "sim", None)
         self.work_j = 0.0
@@ -308,7 +313,7 @@ class _EnergyCheck:
         self.ok = True
         self.subdivided_steps = 0
         self._last_position = np.asarray(start_position, dtype=np.float64).copy()
-        self._last_rotation = quat_to_matrix(model.probe.quat_wxyz)
+        self._last_rotation = quat_to_matrix(start_quat)
 
     def __call__(self, result: ContactResult, position: NDArray[np.float64]) -> None:
         if result.diagnostics.get("subdivisions"):
