@@ -21,7 +21,7 @@ Every strategy sees the same probe path. Per method, mode and level one record:
 
 Methods: ``penalty``, ``lm``, ``prescribed`` (always with ``online=True``: the node set
 follows the probe's footprint, as a user without a pre-computed node set would run it) and
-``pbd`` (paper: 10 substeps; robust: 40, :meth:`tissue.pbd.PBDConfig.for_mode`).
+``pbd`` (paper: 10 substeps; robust: 60, :meth:`tissue.pbd.PBDConfig.for_mode`).
 
 Targets of issue 3, printed against the measurements: penalty and prescribed in paper mode
 <= 5 ms per step up to 4.1k tets and <= 20 ms (real time at 0.02 s) up to 26k tets; LM <= 2 x

@@ -261,7 +261,7 @@ class PBDConfig:
     def for_mode(cls, mode: str) -> PBDConfig:
         """The calibrated settings of a study configuration: ``paper`` (the defaults, 10
         substeps, a FleX-like baseline) or ``robust`` (:data:`ROBUST_SUBSTEPS` substeps with
-        their own calibrated scales; about 4 x the time per step, see the module docstring).
+        their own calibrated scales; about 6 x the time per step, see the module docstring).
         """
         name = str(getattr(mode, "value", mode))
         if name == "paper":

@@ -98,8 +98,9 @@ class LagrangeParams:
             then stops shrinking (``_STALLED_ITERATIONS`` iterations without halving), the
             iterate is accepted when no point is deeper than this [m], and the step fails
             (and is subdivided) otherwise. Measured on the 105k level: the linearised gaps
-            are met to the PGS tolerance while the exact gap of a point on the probe's rounded
-            edge stays at -1.02e-7 m, and 30 iterations went by before the step was split.
+            were met to the PGS tolerance while the exact gap of one point stayed at
+            -1.02e-7 m (the probe's curvature, which a linearised gap misses, is the likely
+            cause), and 30 iterations went by before the step was split.
     """
 
     alarm_distance_m: float = 0.002
