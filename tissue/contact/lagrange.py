@@ -513,19 +513,17 @@ class LagrangeContact(FEContactModel):
             # refactorisations a step, 10-12 s instead of ~1 s).
             project = keep or (bool(cfg.project_psd) and residual > PROJECTION_SWITCH)
             try:
-                while True:
-                    system = potential.hessian_system(y, -gradient, project=project)
-                    if keep:
-                        free_step, report = integrator.solver.solve(
-                            system, tolerance=tolerance, kind=LinearSolverKind.REUSE
-                        )
-                        fresh, indefinite = report.factorized, report.indefinite
-                    else:
-                        factorization, indefinite = integrator.solver.factorize(system)
-                    if project or not indefinite:
-                        break
-                    project = True
-                if not keep:
+                system = potential.hessian_system(y, -gradient, project=project)
+                if keep:
+                    free_step, report = integrator.solver.solve(
+                        system, tolerance=tolerance, kind=LinearSolverKind.REUSE
+                    )
+                    fresh = report.factorized
+                else:
+                    factorization, indefinite = integrator.solver.factorize(system)
+                    if indefinite and not project:
+                        system = potential.hessian_system(y, -gradient, project=True)
+                        factorization, _ = integrator.solver.factorize(system)
                     free_step = np.asarray(factorization.solve(system.rhs)).reshape(-1)
                     free_step = np.where(constrained, system.values, free_step)
             except Exception:  # noqa: BLE001 - a status, not a crash
