@@ -1,17 +1,23 @@
-"""Running a study: references first, then every cell, resumably, locally or on Ray.
+"""Running a study: every cell and the references it is scored against, resumably,
+locally or on Ray.
 
 ``results.jsonl`` in the output directory gets one line per finished cell, appended and
 flushed as it finishes; a rerun with the same directory skips the cells it holds, so a
-killed study loses at most the cells in flight. ``study.json`` records the specification;
-rerunning with different physics (scene, depths, speed, reference) into the same directory
-is refused. Timing: with ``workers`` > 1 the cells share the machine's cores, so their
-per-step times are comparable within the run but slower than a one-worker run's.
-"""
+killed study loses at most the cells (and the reference) in flight. The references run in
+the same queue as the cells, before the cells on the reference level: a cell finishing
+before its lesion's reference is appended with ``"truth": "pending"`` and its errors are
+filled in, the file rewritten atomically, once the references are known (so a reference
+recomputed by a new version rescores every record too). ``study.json`` records the
+specification; rerunning with different physics (scene, depths, speed, reference) into the
+same directory is refused. Timing: with ``workers`` > 1 the cells share the machine's
+cores, so their per-step times are comparable within the run but slower than a one-worker
+run's."""
 
 from __future__ import annotations
 
 import json
 import os
+import tempfile
 from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
@@ -21,8 +27,9 @@ from typing import Any
 import numpy as np
 
 from agents.study.cell import run_cell, scene_for
-from agents.study.reference import load_or_compute_reference, read_measured_csv
-from agents.study.spec import Cell, StudySpec, level_label
+from agents.study.reference import load_or_compute_reference, read_measured_csv, reference_path
+from agents.study.scenes import StudyScene
+from agents.study.spec import StudySpec, level_label
 from tissue.errors import ConfigError
 
 RESULTS_FILE = "results.jsonl"
@@ -142,27 +149,41 @@ def run_study(
         log(f"mesh {level_label(level)}: {mesh.tet_count} tets, {mesh.node_count} nodes")
 
     with _executor(workers, ray_address) as submit:
-        references, computed = _references(spec, lesions, measured, submit, log)
-        (out / REFERENCES_FILE).write_text(json.dumps(references, indent=1))
-        truth = {
-            lesion: (
-                [measured[lesion].get(i + 1) for i in range(len(spec.depths_m))]
-                if measured is not None and lesion in measured
-                else (references[lesion]["tracked_m"] if lesion in references else None)
-            )
-            for lesion in lesions
-        }
-        log(f"study: {len(cells)} cells to run, {len(done)} already in {results_path}")
-        bar = _progress_bar(len(cells), progress)
+        references, waiting = _cached_references(spec, scene, lesions, measured, log)
+        # Uncached references run as tasks in the cells' queue, just before the first cell on
+        # the reference level: a reference on the finest level takes tens of minutes, and the
+        # coarse levels' cells (seconds to minutes each) need not wait for it. A cell that
+        # finishes before its lesion's reference is appended with its errors pending; every
+        # record's errors are filled in (or refreshed) once the references are known.
+        coarse = [cell for cell in cells if cell.level < spec.reference_level]
+        tasks: list[_Task] = [
+            *(("cell", cell) for cell in coarse),
+            *(("reference", lesion) for lesion in waiting),
+            *(("cell", cell) for cell in cells if cell.level >= spec.reference_level),
+        ]
+        log(
+            f"study: {len(cells)} cells to run, {len(done)} already in {results_path}; "
+            f"{len(waiting)} references to compute"
+        )
+        computed = 0
+        bar = _progress_bar(len(tasks), progress)
         window = 1 if workers == 1 and ray_address is None else 2 * workers
-        for record in _run_all(cells, spec, submit, window):
-            record["errors_m"] = tracked_errors(record, truth.get(record["lesion"]))
-            record["truth"] = "measured" if measured is not None else "reference"
-            _append(results_path, record)
-            records.append(record)
+        for (kind, item), result in _run_all(tasks, spec, submit, window):
             bar.update(1)
-            bar.set_postfix_str(f"{record['key']} {record['status']}")
+            if kind == "reference":
+                record, fresh = result
+                references[item] = record
+                computed += int(fresh)
+                _log_reference(spec, item, record, fresh, log)
+                bar.set_postfix_str(f"reference lesion {item}")
+                continue
+            result.update(_scoring(result, _truth(spec, result["lesion"], measured, references)))
+            _append(results_path, result)
+            records.append(result)
+            bar.set_postfix_str(f"{result['key']} {result['status']}")
         bar.close()
+        (out / REFERENCES_FILE).write_text(json.dumps(references, indent=1))
+        records = _rescore(results_path, records, spec, measured, references, log)
 
     from agents.study.report import write_report
 
@@ -170,34 +191,101 @@ def run_study(
     return StudyOutcome(records, references, len(cells), len(done), computed)
 
 
-def _references(
+# A queued piece of work: ("cell", Cell) or ("reference", lesion).
+_Task = tuple[str, Any]
+
+
+def _truth(
     spec: StudySpec,
+    lesion: int,
+    measured: dict[int, dict[int, list[float]]] | None,
+    references: dict[int, dict[str, Any]],
+) -> tuple[str, list[list[float] | None] | None]:
+    """What ``lesion``'s cells are scored against: (kind, tracked point per depth or None).
+
+    kind is ``measured``, ``reference`` or ``pending`` (its reference not computed yet).
+    """
+    if measured is not None:
+        points = measured.get(lesion)
+        if points is None:
+            return "measured", None
+        return "measured", [points.get(i + 1) for i in range(len(spec.depths_m))]
+    if lesion not in references:
+        return "pending", None
+    return "reference", references[lesion]["tracked_m"]
+
+
+def _scoring(
+    record: dict[str, Any], truth: tuple[str, list[list[float] | None] | None]
+) -> dict[str, Any]:
+    """The fields of ``record`` that depend on the truth: ``errors_m`` and ``truth``."""
+    kind, points = truth
+    return {"errors_m": tracked_errors(record, points), "truth": kind}
+
+
+def _rescore(
+    path: Path,
+    records: list[dict[str, Any]],
+    spec: StudySpec,
+    measured: dict[int, dict[int, list[float]]] | None,
+    references: dict[int, dict[str, Any]],
+    log: Callable[[str], None],
+) -> list[dict[str, Any]]:
+    """Every record scored against the truth now known; ``results.jsonl`` is rewritten
+    (atomically) when any record's errors were pending or scored against another truth."""
+    changed = 0
+    for record in records:
+        fields = _scoring(record, _truth(spec, record["lesion"], measured, references))
+        if any(record.get(key) != value for key, value in fields.items()):
+            record.update(fields)
+            changed += 1
+    if changed:
+        handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+        with os.fdopen(handle, "w") as file:
+            file.writelines(json.dumps(record) + "\n" for record in records)
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(temporary, path)  # a kill leaves the old file or the new, never half
+        log(f"errors of {changed} cells scored against the truth now known")
+    return records
+
+
+def _cached_references(
+    spec: StudySpec,
+    scene: StudyScene,
     lesions: tuple[int, ...],
     measured: dict[int, dict[int, list[float]]] | None,
-    submit: Callable[..., Future[Any]],
     log: Callable[[str], None],
-) -> tuple[dict[int, dict[str, Any]], int]:
+) -> tuple[dict[int, dict[str, Any]], list[int]]:
+    """The references already on disk, and the lesions whose reference must be computed."""
     if measured is not None:
         log("truth: measured positions from --measured; no reference computed")
-        return {}, 0
-    futures = {lesion: submit(_reference_task, spec, lesion) for lesion in lesions}
-    references, computed = {}, 0
-    for lesion, future in futures.items():
-        record, fresh = future.result()
-        references[lesion] = record
-        computed += int(fresh)
-        found = record.get("instability")
-        log(
-            f"reference lesion {lesion} ({level_label(spec.reference_level)}): "
-            + (f"computed in {record['wall_s']:.1f} s" if fresh else "cached")
-            + (
-                f"; it stopped at step {found['step']} ({found['kind']}: {found['detail']}), "
-                f"so it holds {len(record['tracked_m'])} of {len(spec.depths_m)} depths"
-                if found
-                else ""
-            )
+        return {}, []
+    references, waiting = {}, []
+    for lesion in lesions:
+        path = reference_path(spec, scene, lesion)
+        if path.exists():
+            references[lesion] = json.loads(path.read_text())
+            _log_reference(spec, lesion, references[lesion], False, log)
+        else:
+            waiting.append(lesion)
+    return references, waiting
+
+
+def _log_reference(
+    spec: StudySpec, lesion: int, record: dict[str, Any], fresh: bool, log: Callable[[str], None]
+) -> None:
+    found = record.get("instability")
+    log(
+        f"reference lesion {lesion} ({level_label(spec.reference_level)}): "
+        + (f"computed in {record['wall_s']:.1f} s" if fresh else "cached")
+        + (
+            f"; it stopped at step {found['step']} ({found['kind']}: {found['detail']}), "
+            f"so it holds {len(record['tracked_m'])} of {len(spec.depths_m)} depths"
+            if found
+            else ""
         )
-    return references, computed
+    )
 
 
 def _reference_task(spec: StudySpec, lesion: int) -> tuple[dict[str, Any], bool]:
@@ -205,17 +293,19 @@ def _reference_task(spec: StudySpec, lesion: int) -> tuple[dict[str, Any], bool]
 
 
 def _run_all(
-    cells: list[Cell], spec: StudySpec, submit: Callable[..., Future[Any]], window: int
-) -> Iterator[dict[str, Any]]:
-    """Yield each cell's record as it finishes (at most ``window`` cells in flight)."""
-    pending: set[Future[Any]] = set()
-    queue = list(cells)
+    tasks: list[_Task], spec: StudySpec, submit: Callable[..., Future[Any]], window: int
+) -> Iterator[tuple[_Task, Any]]:
+    """Yield each task with its result as it finishes (at most ``window`` in flight)."""
+    pending: dict[Future[Any], _Task] = {}
+    queue = list(tasks)
     while queue or pending:
         while queue and len(pending) < window:
-            pending.add(submit(run_cell, spec, queue.pop(0)))
-        finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+            task = queue.pop(0)
+            function = run_cell if task[0] == "cell" else _reference_task
+            pending[submit(function, spec, task[1])] = task
+        finished, _ = wait(pending, return_when=FIRST_COMPLETED)
         for future in finished:
-            yield future.result()
+            yield pending.pop(future), future.result()
 
 
 class _Immediate(Future[Any]):
