@@ -53,7 +53,7 @@ from tissue.contact.prescribed import PrescribedParams
 from tissue.contact.stability import StabilityMonitor
 from tissue.errors import ConfigError
 from tissue.material import NeoHookean, TissueMaterials
-from tissue.mesh import TetMesh
+from tissue.mesh import TetMesh, boundary_faces
 from tissue.pbd import PBDConfig
 from tissue.probe import Probe, ProbeShape, parse_probe_spec, quat_to_matrix
 from tissue.simulator import SimulationConfig
@@ -211,7 +211,14 @@ def _edge_pose(
     surface: Any, mesh: TetMesh, shape: ProbeShape, target: NDArray[np.float64], angle_deg: float
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """First contact of the probe turned ``angle_deg`` about its long axis (x), pressing
-    straight down: the long edge of the face meets the skin first."""
+    straight down: the long edge of the face meets the skin first.
+
+    Contact here is with the collision surface's vertices and the volume's boundary nodes
+    alike (the points the FE methods and PBD hold): turned this far, the probe's side meets
+    the coarse levels' boundary nodes between collision vertices, and starting it in contact
+    with only the latter left a node 1.1 mm inside it at level 4126 (PBD, which holds the
+    nodes, then jolted the tissue in its first step).
+    """
     angle = math.radians(angle_deg)
     # Pressing direction (the probe's +y) tilted about world x; the long axis stays along x.
     direction = np.array([0.0, math.sin(angle), -math.cos(angle)])
@@ -219,7 +226,9 @@ def _edge_pose(
     # Move it down along -z to first contact (the edge leads), keeping the orientation.
     probe = Probe(shape)
     probe.set_pose(position, quat)
-    vertices = surface.positions(mesh.nodes)
+    vertices = np.concatenate(
+        [surface.positions(mesh.nodes), mesh.nodes[np.unique(boundary_faces(mesh.tets))]]
+    )
     for _ in range(8):
         distance, _ = probe.signed_distance_world(vertices)
         closest = float(distance.min())

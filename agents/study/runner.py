@@ -31,6 +31,7 @@ from agents.study.reference import load_or_compute_reference, read_measured_csv,
 from agents.study.scenes import StudyScene
 from agents.study.spec import StudySpec, level_label
 from tissue.errors import ConfigError
+from tissue.probe import parse_probe_spec
 
 RESULTS_FILE = "results.jsonl"
 SPEC_FILE = "study.json"
@@ -74,6 +75,24 @@ def _append(path: Path, record: dict[str, Any]) -> None:
         file.write(("\n" if cut_short else "") + json.dumps(record) + "\n")
         file.flush()
         os.fsync(file.fileno())
+
+
+def _check_depths_reachable(
+    spec: StudySpec, scene: StudyScene, lesions: tuple[int, ...], mesh: Any
+) -> None:
+    """Refuse depths that drive the probe into the fixed base above some lesion."""
+    shape = parse_probe_spec("face")
+    clearances = {
+        lesion: scene.base_clearance_m(mesh, shape, lesion, spec.depths_m) for lesion in lesions
+    }
+    blocked = {lesion: c for lesion, c in clearances.items() if c <= 0.0}
+    if blocked:
+        listed = ", ".join(f"lesion {k}: {1e3 * c:.1f} mm" for k, c in sorted(blocked.items()))
+        raise ConfigError(
+            f"--depths up to {1e3 * spec.depths_m[-1]:g} mm drive the probe into the fixed "
+            f"base ({listed} between probe and base at the deepest pose); give smaller "
+            "--depths or other --lesions"
+        )
 
 
 def _check_resume(spec: StudySpec, out: Path) -> None:
@@ -147,6 +166,8 @@ def run_study(
     for level in needed:
         mesh = scene.mesh(level)
         log(f"mesh {level_label(level)}: {mesh.tet_count} tets, {mesh.node_count} nodes")
+    if needed and scene.directory is None:
+        _check_depths_reachable(spec, scene, lesions, scene.mesh(needed[0]))
 
     with _executor(workers, ray_address) as submit:
         references, waiting = _cached_references(spec, scene, lesions, measured, log)

@@ -34,7 +34,7 @@ from agents.study.spec import NATIVE_LEVEL
 from tissue.contact.base import contact_surface
 from tissue.contact.placement import first_contact_pose, ray_surface_hit
 from tissue.errors import ConfigError
-from tissue.mesh import TetMesh
+from tissue.mesh import TetMesh, boundary_faces
 from tissue.probe import Probe, ProbeShape
 
 #: Where ``--scene paper`` looks, in order: this variable, then ``shared/paper-scene`` beside
@@ -133,11 +133,45 @@ class StudyScene:
         )
         return straight_path(position, quat, direction, list(depths_m))
 
+    def base_clearance_m(
+        self, mesh: TetMesh, shape: ProbeShape, lesion: int, depths_m: tuple[float, ...]
+    ) -> float:
+        """Least distance [m] between the probe at ``lesion``'s deepest pose and the
+        mesh's fixed nodes (negative: the pose would drive the probe into the fixed base,
+        squeezing the tissue between them to nothing, which no method can complete).
+
+        The base is sampled on the boundary triangles whose corners are all fixed (a 6 x 6
+        barycentric grid each): a coarse level's few fixed nodes alone leave gaps a tilted
+        probe fits between.
+        """
+        _, stops = self.path(mesh, shape, lesion, depths_m)
+        probe = Probe(shape)
+        probe.set_pose(stops[-1].position, stops[-1].quat_wxyz)
+        distance, _ = probe.signed_distance_world(_fixed_base_samples(mesh))
+        return float(distance.min(initial=np.inf))
+
     def prescribed_nodes(self, mesh: TetMesh, lesion: int) -> tuple[int, ...] | None:
         """The published a-priori node set of ``lesion`` (None: chosen at first contact)."""
         if self.directory is None:
             return None
         return spring_nodes_to_volume(mesh, self.paper_scene().spring_nodes[lesion])
+
+
+def _fixed_base_samples(mesh: TetMesh, per_edge: int = 6) -> NDArray[np.float64]:
+    """Points [m] spread over the mesh's fixed boundary (triangles with all corners fixed),
+    shape (k, 3); the fixed nodes themselves where no such triangle exists."""
+    fixed = np.zeros(mesh.node_count, dtype=bool)
+    fixed[mesh.fixed_nodes] = True
+    faces = boundary_faces(mesh.tets)
+    faces = faces[fixed[faces].all(axis=1)]
+    if faces.size == 0:
+        return mesh.nodes[fixed]
+    grid = [
+        (i / per_edge, j / per_edge) for i in range(per_edge + 1) for j in range(per_edge + 1 - i)
+    ]
+    weights = np.array([(a, b, 1.0 - a - b) for a, b in grid])  # (g, 3)
+    corners = mesh.nodes[faces]  # (f, 3, 3)
+    return np.einsum("gk,fka->fga", weights, corners).reshape(-1, 3)
 
 
 def radial_roll_rad(shape: ProbeShape, direction: NDArray[np.float64]) -> float:
