@@ -48,11 +48,11 @@ sweeps over all constraints (multipliers reset to zero at each substep), and v =
   included; the boundary nodes match the FE reference, which holds those nodes (see
   Calibration). With ``contact_spacing_m`` > 0, points between the boundary nodes too,
   embedded in their boundary faces (a face point moves only that face's 3 nodes), so that
-  none are farther apart than that: the coarse levels' boundary nodes lie 10-20 mm apart,
-  and a 13 mm wide face pressing between two of them sinks into the faces between (1,363
-  tets, lesions 10 x stiffer: at 20 mm the tissue closed over the probe, the force fell from
-  2.2 N to 0 and the lesion under it jumped 15.6 mm). Penetration is measured on these same
-  points. Each
+  none are farther apart than that: the coarse levels' boundary edges are 22 mm (1,363
+  tets), 14 mm (4,126) and 4.7 mm (26,220) long (medians), and a 13 mm wide face pressing
+  between two nodes sinks into the faces between (1,363 tets, lesions 10 x stiffer: at 20 mm
+  the tissue closed over the probe, the force fell from 2.2 N to 0 and the lesion under it
+  jumped 15.6 mm). Penetration is measured on these same points. Each
   substep, the probe is placed at a pose interpolated between the previous step's pose and the
   new one (linear in position, nlerp in orientation), and every point within
   ``contact_margin_m`` of it (signed distance from the probe's exact SDF, at the predicted
@@ -139,10 +139,11 @@ few elements into a fine mesh). ``PBDConfig.for_mode("robust")`` runs :data:`ROB
 = 60 substeps (Macklin et al. 2019: substeps converge better than iterations), calibrated the
 same way, with contact points at most :data:`ROBUST_CONTACT_SPACING_M` = 4 mm apart: the
 volume compliance is the material's own (scale 1) and the deviatoric scale is fitted to the
-force, 1.16: force -0.30 %, lesion 1 6.8 %, all lesions 9.4 % (30.2 % at 10 substeps). The
-two-scale fit from (1, 1) (run with 3 ms of damping, below) landed on a softer volume (1.013
-and 1.511, all lesions 9.6 %): a volume scale of 1 keeps the material's own compressibility
-for nearly the same match. On the boundary nodes alone the two-scale fit gives 1.024 and
+force (``calibrate_pbd(..., fit=False)`` at 1.06, 1.08, 1.10, 1.15 and 1.16): 1.16, force
+-0.30 %, lesion 1 6.8 %, all lesions 9.4 % (30.2 % at 10 substeps). The two-scale fit from
+(1, 1) (run with 3 ms of damping, below) landed on a softer volume (1.013 and 1.511, all
+lesions 9.6 %): a volume scale of 1 keeps the material's own compressibility for nearly the
+same match. On the boundary nodes alone the two-scale fit gives 1.024 and
 0.533 and 12.2 %. The points between nodes cure the tissue closing over the probe on the
 1,363-tet level (above); with them and a volume scale of 1 the 30 mm hold there no longer
 jitters (with them and the previous scales, 0.9994 and 0.946, a lateral lesion still moved
@@ -181,7 +182,7 @@ from tissue.status import StepStatus
 # configuration (10 substeps, the defaults) ...
 CALIBRATED_DEVIATORIC_COMPLIANCE_SCALE = 0.5456
 CALIBRATED_VOLUME_COMPLIANCE_SCALE = 0.5073
-# ... and the robust one (ROBUST_SUBSTEPS substeps, denser contact points, a little damping).
+# ... and the robust one (ROBUST_SUBSTEPS substeps, contact points between the boundary nodes).
 ROBUST_SUBSTEPS = 60
 ROBUST_CONTACT_SPACING_M = 0.004
 ROBUST_STIFFNESS_DAMPING_S = 0.0

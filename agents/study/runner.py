@@ -31,6 +31,7 @@ from agents.study.reference import load_or_compute_reference, read_measured_csv,
 from agents.study.scenes import StudyScene
 from agents.study.spec import StudySpec, level_label
 from tissue.errors import ConfigError
+from tissue.mesh import TetMesh
 from tissue.probe import parse_probe_spec
 
 RESULTS_FILE = "results.jsonl"
@@ -78,7 +79,7 @@ def _append(path: Path, record: dict[str, Any]) -> None:
 
 
 def _check_depths_reachable(
-    spec: StudySpec, scene: StudyScene, lesions: tuple[int, ...], mesh: Any
+    spec: StudySpec, scene: StudyScene, lesions: tuple[int, ...], mesh: TetMesh
 ) -> None:
     """Refuse depths that drive the probe into the fixed base above some lesion."""
     shape = parse_probe_spec("face")

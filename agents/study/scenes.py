@@ -137,12 +137,12 @@ class StudyScene:
         self, mesh: TetMesh, shape: ProbeShape, lesion: int, depths_m: tuple[float, ...]
     ) -> float:
         """Least distance [m] between the probe at ``lesion``'s deepest pose and the
-        mesh's fixed nodes (negative: the pose would drive the probe into the fixed base,
-        squeezing the tissue between them to nothing, which no method can complete).
+        mesh's fixed base (negative: the pose would drive the probe into it, squeezing the
+        tissue between them to nothing, which no method can complete).
 
-        The base is sampled on the boundary triangles whose corners are all fixed (a 6 x 6
-        barycentric grid each): a coarse level's few fixed nodes alone leave gaps a tilted
-        probe fits between.
+        The base is sampled on the boundary triangles whose corners are all fixed (28
+        points each, a grid of 6 divisions per edge): a coarse level's few fixed nodes
+        alone leave gaps a tilted probe fits between.
         """
         _, stops = self.path(mesh, shape, lesion, depths_m)
         probe = Probe(shape)
