@@ -262,3 +262,44 @@ def test_local_ray_run_matches_local_run(tmp_path: Path) -> None:
         np.testing.assert_allclose(record["tracked_m"], twin["tracked_m"], rtol=0, atol=1e-12)
         assert record["stability_percent"] == twin["stability_percent"]
         np.testing.assert_allclose(record["errors_m"], twin["errors_m"], rtol=0, atol=1e-12)
+
+
+_POOL_SCRIPT = """
+import multiprocessing, os, time
+from concurrent.futures import ProcessPoolExecutor
+from agents.study.worker import init_worker
+pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+                           initializer=init_worker, initargs=(1, os.getpid()))
+print(pool.submit(os.getpid).result(), flush=True)
+pool.submit(time.sleep, 60)  # a long cell in hand
+time.sleep(60)
+"""
+
+
+def _running(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state not in ("Z", "X")
+
+
+@pytest.mark.skipif(
+    not sys.platform.startswith("linux"), reason="the parent-death signal is Linux's"
+)
+def test_a_killed_study_takes_its_workers_with_it() -> None:
+    """A worker busy with a cell ends when the study's process is killed (SIGKILL), instead
+    of computing on for the length of its cell."""
+    process = subprocess.Popen(
+        [sys.executable, "-c", _POOL_SCRIPT], stdout=subprocess.PIPE, text=True
+    )
+    assert process.stdout is not None
+    worker = int(process.stdout.readline())
+    time.sleep(0.5)  # the worker is now asleep in its 60 s task
+    assert _running(worker)
+    process.kill()
+    process.wait()
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and _running(worker):
+        time.sleep(0.05)
+    assert not _running(worker)

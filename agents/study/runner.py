@@ -364,7 +364,7 @@ class _executor:  # noqa: N801 - used as a context manager like a function
             max_workers=self.workers,
             mp_context=multiprocessing.get_context("spawn"),
             initializer=init_worker,
-            initargs=(self.workers,),
+            initargs=(self.workers, os.getpid()),
         )
         return self._pool.submit
 
