@@ -123,7 +123,7 @@ def test_unknown_case_is_a_clear_error() -> None:
 
 # Measured on the 4,126-tet level.
 KNOWN_FAILURES_4126: dict[tuple[str, str], str] = {
-    # The robust PBD (60 substeps; the paper's 10 failed every case here but the tilt).
+    # The robust PBD (60 substeps; the paper's 10 fail every case here but the tilt and edge).
     ("sliding_40mm", "pbd"): "a landmark jumps 2.2 mm in one step while sliding (XPBD)",
     ("sudden_release", "pbd"): "XPBD rings after the release: the tissue bounces against the "
     "withdrawn probe and a landmark moves 3.9 mm in a step more than 10 steps later",

@@ -132,8 +132,8 @@ the stored scales to stay within :data:`CALIBRATION_FORCE_BOUND` and
 Robust configuration
 --------------------
 Ten substeps are what a real-time PBD engine runs, and they are not converged under large
-deformation: on level 4126 every hard case but the tilted press fails (a landmark jumps 1-2 mm
-in one 0.2 mm step, or a surface tet inverts), and the 105k- and 176k-tet levels invert a
+deformation: on level 4126 every hard case but the tilted and edge presses fails (a surface
+tet inverts 19-52 % into the case), and the 105k- and 176k-tet levels invert a
 surface tet 6-8 mm in (one Gauss-Seidel sweep per substep moves a contact correction only a
 few elements into a fine mesh). ``PBDConfig.for_mode("robust")`` runs :data:`ROBUST_SUBSTEPS`
 = 60 substeps (Macklin et al. 2019: substeps converge better than iterations), calibrated the
