@@ -53,7 +53,7 @@ from tissue.contact.prescribed import PrescribedParams
 from tissue.contact.stability import StabilityMonitor
 from tissue.errors import ConfigError
 from tissue.material import NeoHookean, TissueMaterials
-from tissue.mesh import TetMesh, boundary_faces
+from tissue.mesh import TetMesh
 from tissue.pbd import PBDConfig
 from tissue.probe import Probe, ProbeShape, parse_probe_spec, quat_to_matrix
 from tissue.simulator import SimulationConfig
@@ -227,7 +227,7 @@ def _edge_pose(
     probe = Probe(shape)
     probe.set_pose(position, quat)
     vertices = np.concatenate(
-        [surface.positions(mesh.nodes), mesh.nodes[np.unique(boundary_faces(mesh.tets))]]
+        [surface.positions(mesh.nodes), mesh.nodes[np.unique(mesh.boundary_triangles())]]
     )
     for _ in range(8):
         distance, _ = probe.signed_distance_world(vertices)

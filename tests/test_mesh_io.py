@@ -186,3 +186,16 @@ def test_npz_archive_round_trip(tmp_path: Path) -> None:
     (tmp_path / "bad.npz").write_bytes(b"nope")
     with pytest.raises(MeshError, match="cannot read"):
         load_mesh_npz(tmp_path / "bad.npz")
+
+
+@pytest.mark.parametrize("divisions", [1, 2, 3, 6])
+def test_triangle_grid_covers_the_triangle_once(divisions: int) -> None:
+    from tissue.mesh import triangle_grid
+
+    every, inside = triangle_grid(divisions), triangle_grid(divisions, interior=True)
+    assert len(every) == (divisions + 1) * (divisions + 2) // 2
+    assert len(inside) == (divisions - 1) * (divisions - 2) // 2
+    for weights in (every, inside):
+        np.testing.assert_allclose(weights.sum(axis=1), 1.0)
+        assert len(np.unique(np.round(weights, 12), axis=0)) == len(weights)
+    assert np.all(every >= 0.0) and np.all(inside > 0.0)

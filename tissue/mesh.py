@@ -209,6 +209,17 @@ def boundary_faces(tets: NDArray[np.int64]) -> NDArray[np.int64]:
     return faces[first[counts == 1]]
 
 
+def triangle_grid(divisions: int, interior: bool = False) -> NDArray[np.float64]:
+    """Barycentric weights of the regular grid dividing each edge of a triangle into
+    ``divisions`` parts, shape (k, 3); with ``interior``, only the points strictly inside
+    (none for fewer than 3 divisions)."""
+    steps = [(i, j) for i in range(divisions + 1) for j in range(divisions + 1 - i)]
+    if interior:
+        steps = [(i, j) for i, j in steps if i > 0 and j > 0 and i + j < divisions]
+    weights = [(i / divisions, j / divisions, 1.0 - (i + j) / divisions) for i, j in steps]
+    return np.array(weights, dtype=np.float64).reshape(-1, 3)
+
+
 def _check_mesh(mesh: TetMesh) -> None:
     nodes, tets = mesh.nodes, mesh.tets
     if nodes.ndim != 2 or nodes.shape[1] != 3 or nodes.shape[0] < 4:

@@ -30,11 +30,7 @@ sweeps over all constraints (multipliers reset to zero at each substep), and v =
   the calibrated ``deviatoric_compliance_scale`` and ``volume_compliance_scale`` (below).
 * Masses: lumped, rho V / 4 per tet corner, from the region densities. Fixed nodes
   (``mesh.fixed_nodes``) get inverse mass 0 and never move.
-* Damping: mass-proportional, v <- v exp(-damping_per_s h) each substep; optionally Rayleigh
-  stiffness damping r_K (``stiffness_damping_s``) on the elastic constraints, as XPBD's
-  constraint damping (Macklin et al. 2016, eq. 26: gamma = r_K / h, the damping force
-  -gamma grad C . (x - x_substep_start) on the right, (1 + gamma) on the constraint's
-  generalised inverse mass).
+* Damping: mass-proportional, v <- v exp(-damping_per_s h) each substep.
 * Solver: plain serial Gauss-Seidel in mesh order (numba). It converges best per sweep and is
   deterministic; graph colouring would only pay for a parallel sweep, which on the 2 cores
   this project targets gains at most 2 x against a barrier per colour, and the defaults
@@ -148,7 +144,8 @@ same match. On the boundary nodes alone the two-scale fit gives 1.024 and
 1,363-tet level (above); with them and a volume scale of 1 the 30 mm hold there no longer
 jitters (with them and the previous scales, 0.9994 and 0.946, a lateral lesion still moved
 0.4-1.6 mm per step while the probe held still). Tried and left out:
-Rayleigh stiffness damping (``stiffness_damping_s``) of 3 ms also stopped that jitter but
+Rayleigh stiffness damping as XPBD's constraint damping (Macklin et al. 2016, eq. 26,
+gamma = r_K / h) of 3 ms also stopped that jitter but
 inverted a tet on fine_105k at 98 %, and 10 or 30 ms softened the force at 30 mm by 27 and
 46 % (with one sweep per substep the damping slows the elastic correction too); 40 substeps,
 on the nodes alone, inverted a tet at 28 mm on lesion 1's path at level 4126. Cost: about 50
@@ -174,7 +171,7 @@ from scipy.spatial import cKDTree
 from tissue.contact.base import ContactMethod, ContactModel, SurfacePoints
 from tissue.errors import ConfigError, TissueInputError
 from tissue.material import TissueMaterials
-from tissue.mesh import TetMesh, boundary_faces
+from tissue.mesh import TetMesh, boundary_faces, triangle_grid
 from tissue.probe import ProbeShape, quat_to_matrix
 from tissue.status import StepStatus
 
@@ -185,7 +182,6 @@ CALIBRATED_VOLUME_COMPLIANCE_SCALE = 0.5073
 # ... and the robust one (ROBUST_SUBSTEPS substeps, contact points between the boundary nodes).
 ROBUST_SUBSTEPS = 60
 ROBUST_CONTACT_SPACING_M = 0.004
-ROBUST_STIFFNESS_DAMPING_S = 0.0
 ROBUST_DEVIATORIC_COMPLIANCE_SCALE = 1.16
 ROBUST_VOLUME_COMPLIANCE_SCALE = 1.0
 
@@ -220,9 +216,6 @@ class PBDConfig:
         volume_compliance_scale: multiplies alpha_H = 1 / (lambda' V) (> 0); calibrated with
             the deviatoric scale on the lesion displacements.
         damping_per_s: mass-proportional velocity damping rate [1/s] (>= 0).
-        stiffness_damping_s: Rayleigh stiffness damping r_K [s] (>= 0) on the elastic
-            constraints, as XPBD's constraint damping (Macklin et al. 2016, eq. 26); the FE
-            simulator's default is 0.1 s.
         contact_compliance_m_per_n: compliance of a contact constraint [m/N] (>= 0; 0 = hard,
             no penetration once converged).
         contact_margin_m: points closer to the probe than this [m] (>= 0) get a contact
@@ -245,7 +238,6 @@ class PBDConfig:
     contact_margin_m: float = 0.001
     friction: float = 0.0
     contact_spacing_m: float = 0.0
-    stiffness_damping_s: float = 0.0
 
     def __post_init__(self) -> None:
         _check_number("tissue_dt", self.tissue_dt, "a time step in seconds in (0, 1] (paper: 0.02)")
@@ -277,7 +269,6 @@ class PBDConfig:
                 )
         for name, unit in (
             ("damping_per_s", "1/s"),
-            ("stiffness_damping_s", "s"),
             ("contact_spacing_m", "m; 0 = the boundary nodes only"),
             ("contact_compliance_m_per_n", "m/N; 0 = hard contact"),
             ("contact_margin_m", "m"),
@@ -306,7 +297,6 @@ class PBDConfig:
             return cls(
                 substeps=ROBUST_SUBSTEPS,
                 contact_spacing_m=ROBUST_CONTACT_SPACING_M,
-                stiffness_damping_s=ROBUST_STIFFNESS_DAMPING_S,
                 deviatoric_compliance_scale=ROBUST_DEVIATORIC_COMPLIANCE_SCALE,
                 volume_compliance_scale=ROBUST_VOLUME_COMPLIANCE_SCALE,
             )
@@ -351,8 +341,6 @@ def _project_tets(
     lam_hyd: NDArray[np.float64],
     support: NDArray[np.float64],
     tet_ids: NDArray[np.int64],
-    x_start: NDArray[np.float64],
-    damping: float,
 ) -> None:
     """One Gauss-Seidel sweep of the coupled neo-Hookean constraint pair over ``tet_ids``.
 
@@ -367,9 +355,6 @@ def _project_tets(
         support: per-node sum of grad C * d lambda at fixed nodes, (node_count, 3), updated;
             divided by h^2 it is the elastic force on the fixed nodes.
         tet_ids: the tets to project, in this order (all of them, or the contact zone's).
-        x_start: node positions at the substep's start [m], (node_count, 3).
-        damping: gamma = r_K / h of XPBD's constraint damping (Macklin et al. 2016, eq. 26;
-            dimensionless; 0: none): Rayleigh stiffness damping with time constant r_K.
     """
     # Scratch buffers allocated once: an allocation per tet would cost as much as the maths.
     g = np.empty((4, 3))
@@ -416,32 +401,19 @@ def _project_tets(
         k_dd = 0.0
         k_dh = 0.0
         k_hh = 0.0
-        rate_d = 0.0  # grad C . (x - x_start), the constraint's change over the substep
-        rate_h = 0.0
         for local in range(4):
-            node = tets[t, local]
-            w = inv_mass[node]
-            if damping > 0.0:
-                for a in range(3):
-                    moved = x[node, a] - x_start[node, a]
-                    rate_d += g[local, a] * moved
-                    rate_h += gh[local, a] * moved
+            w = inv_mass[tets[t, local]]
             if w == 0.0:
                 continue
             for a in range(3):
                 k_dd += w * g[local, a] * g[local, a]
                 k_dh += w * g[local, a] * gh[local, a]
                 k_hh += w * gh[local, a] * gh[local, a]
-        # Damped XPBD: (1 + gamma) grad C M^-1 grad C^T + alpha~ on the left, the damping
-        # force's -gamma grad C . (x - x_start) on the right.
-        k_dd *= 1.0 + damping
-        k_dh *= 1.0 + damping
-        k_hh *= 1.0 + damping
         a_dd = k_dd + alpha_dev[t]
         a_hh = k_hh + alpha_hyd[t]
-        rhs_h = -(det - gamma[t]) - alpha_hyd[t] * lam_hyd[t] - damping * rate_h
+        rhs_h = -(det - gamma[t]) - alpha_hyd[t] * lam_hyd[t]
         if has_dev:
-            rhs_d = -norm - alpha_dev[t] * lam_dev[t] - damping * rate_d
+            rhs_d = -norm - alpha_dev[t] * lam_dev[t]
             determinant = a_dd * a_hh - k_dh * k_dh
             if determinant <= _SINGULAR_FRACTION * a_dd * a_hh:
                 continue
@@ -615,9 +587,7 @@ def _contact_points(
             weights.append(_pad_weights(np.tile(pair, (len(chosen), 1))))
         for n in np.unique(grids[grids > 2]):
             chosen = free_faces[grids == n]
-            grid = np.array(
-                [(i / n, j / n, 1.0 - (i + j) / n) for i in range(1, n) for j in range(1, n - i)]
-            )
+            grid = triangle_grid(int(n), interior=True)
             nodes.append(_pad_embedding(np.repeat(chosen, len(grid), axis=0)))
             weights.append(_pad_weights(np.tile(grid, (len(chosen), 1))))
     if mesh.collision_surface is not None:
@@ -792,7 +762,6 @@ class PBDContact(ContactModel):
         x = self._x.copy()
         v = self._v.copy()
         damping = math.exp(-cfg.damping_per_s * h)
-        constraint_damping = cfg.stiffness_damping_s / h
         point_count = self._point_nodes.shape[0]
         impulse = np.zeros((point_count, 3))  # sum over substeps of n lambda / h [N s]
         support = np.zeros((self.mesh.node_count, 3))
@@ -841,8 +810,6 @@ class PBDContact(ContactModel):
                     self._lam_hyd,
                     support_step,
                     zone,
-                    x_previous,
-                    constraint_damping,
                 )
                 if contact_points.size:
                     _project_contacts(

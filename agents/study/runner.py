@@ -164,11 +164,14 @@ def run_study(
 
     # Meshes are generated (or read from the cache) here, once, before workers start.
     needed = sorted({cell.level for cell in cells} | ({spec.reference_level} if cells else set()))
-    for level in needed:
+    coarsest: TetMesh | None = None
+    for level in needed:  # coarse first
         mesh = scene.mesh(level)
+        if coarsest is None:
+            coarsest = mesh
         log(f"mesh {level_label(level)}: {mesh.tet_count} tets, {mesh.node_count} nodes")
-    if needed and scene.directory is None:
-        _check_depths_reachable(spec, scene, lesions, scene.mesh(needed[0]))
+    if coarsest is not None and scene.directory is None:
+        _check_depths_reachable(spec, scene, lesions, coarsest)
 
     with _executor(workers, ray_address) as submit:
         references, waiting = _cached_references(spec, scene, lesions, measured, log)

@@ -34,7 +34,7 @@ from agents.study.spec import NATIVE_LEVEL
 from tissue.contact.base import contact_surface
 from tissue.contact.placement import first_contact_pose, ray_surface_hit
 from tissue.errors import ConfigError
-from tissue.mesh import TetMesh, boundary_faces
+from tissue.mesh import TetMesh, boundary_faces, triangle_grid
 from tissue.probe import Probe, ProbeShape
 
 #: Where ``--scene paper`` looks, in order: this variable, then ``shared/paper-scene`` beside
@@ -166,10 +166,7 @@ def _fixed_base_samples(mesh: TetMesh, per_edge: int = 6) -> NDArray[np.float64]
     faces = faces[fixed[faces].all(axis=1)]
     if faces.size == 0:
         return mesh.nodes[fixed]
-    grid = [
-        (i / per_edge, j / per_edge) for i in range(per_edge + 1) for j in range(per_edge + 1 - i)
-    ]
-    weights = np.array([(a, b, 1.0 - a - b) for a, b in grid])  # (g, 3)
+    weights = triangle_grid(per_edge)  # (g, 3)
     corners = mesh.nodes[faces]  # (f, 3, 3)
     return np.einsum("gk,fka->fga", weights, corners).reshape(-1, 3)
 

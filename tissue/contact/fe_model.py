@@ -25,8 +25,9 @@ from tissue.simulator import SimulationConfig, TissueSimulator
 # 5,558 points both passed all 20 mm (LM 1.2 s per step, measured here). The same happened
 # on the 26k-tet level (2,126 boundary points, 4.2 x) at 25-30 mm on the study's paths: LM
 # and penalty inverted a surface tet at the probe's edge at the same step (lesion 2: 87 %);
-# on the boundary both finish (penalty lesion 2, LM lesion 1: 100 %, LM's median step 1.29
-# s against 1.09 s). The 26k, 105k and 176k levels reach the ratio; 12,861 (2.3 x) does not.
+# on the boundary both finish (penalty lesion 2, LM lesion 1: 100 %; LM's median step 1.29
+# s against 1.09 s, two runs on a differently loaded machine, so a rough price only). The
+# 26k, 105k and 176k levels reach the ratio; 12,861 (2.3 x) does not.
 FINE_BOUNDARY_RATIO = 4.0
 
 
