@@ -199,6 +199,46 @@ def test_classic_law_inverted_tet_gives_inf_energy_and_finite_zeroed_element(
     assert np.all(np.isfinite(state.forces)) and np.all(np.isfinite(state.stiffness.data))
 
 
+@pytest.mark.parametrize("anti_locking", ANTI_LOCKING)
+def test_inversion_barrier_is_exact_below_its_ratio_and_absent_above(
+    anti_locking: AntiLocking,
+) -> None:
+    mesh = box_mesh((2, 2, 2), jitter=0.1)
+    plain = Elasticity(mesh, materials(MaterialLaw.STABLE), anti_locking)
+    barred = Elasticity(mesh, materials(MaterialLaw.STABLE), anti_locking, inversion_barrier=0.1)
+    # Above the barrier ratio the law is untouched, to the last bit.
+    x, _ = squash_node(plain, mesh.nodes, 0.2)
+    a, b = plain.evaluate(x, project_psd=True), barred.evaluate(x, project_psd=True)
+    assert a.energy_j == b.energy_j
+    assert np.array_equal(a.forces, b.forces)
+    assert np.array_equal(a.stiffness.data, b.stiffness.data)
+    # Below it the energy rises, its derivatives stay exact and the projected tangent PSD.
+    x, moved = squash_node(plain, mesh.nodes, 0.02)
+    state = barred.evaluate(x)
+    assert state.energy_j > plain.energy(x)
+    force_error, stiffness_error = central_difference_check(barred, x, step=1e-9)
+    assert force_error < 1e-6 and stiffness_error < 1e-6
+    projected = barred.evaluate(x, project_psd=True).stiffness.toarray()
+    assert (
+        np.linalg.eigvalsh(0.5 * (projected + projected.T)).min() > -1e-9 * np.abs(projected).max()
+    )
+    # The barrier pushes the flattened tet's apex back harder than the law alone.
+    back = mesh.nodes[moved] - x[moved]
+    assert np.dot(state.forces[moved], back) > np.dot(plain.forces(x)[moved], back) > 0.0
+
+
+def test_inversion_barrier_makes_an_inverted_tet_an_infinite_energy() -> None:
+    mesh = box_mesh((2, 2, 2), jitter=0.1)
+    el = Elasticity(mesh, materials(MaterialLaw.STABLE), inversion_barrier=0.1)
+    x, _ = squash_node(el, mesh.nodes, -0.3)
+    state = el.evaluate(x, project_psd=True)
+    assert state.energy_j == math.inf and state.inverted_count >= 1
+    assert np.all(np.isfinite(state.forces)) and np.all(np.isfinite(state.stiffness.data))
+    for bad in (-0.1, 1.0, math.nan):
+        with pytest.raises(ValueError, match="inversion_barrier"):
+            Elasticity(mesh, materials(MaterialLaw.STABLE), inversion_barrier=bad)
+
+
 # ----------------------------------------------------------------------------------------
 # Rest state and small strain
 

@@ -131,6 +131,13 @@ class Elasticity:
         mesh: the tet mesh (rest positions [m], tets, regions).
         materials: per-region materials and the law.
         anti_locking: ``"none"`` or ``"anp"`` (or an :class:`AntiLocking`).
+        inversion_barrier: (stable law) a volume ratio J_b in [0, 1): below it every tet
+            gains the barrier (mu + lam) (-(J - J_b)^2 ln(J / J_b)), which grows without
+            bound as J -> 0 and makes J <= 0 an infinite energy, so that a line search never
+            accepts an inverted tet (see :func:`tissue.fem_kernels.element_pass`); 0 (the
+            default) leaves the law as published. The stable law is finite for inverted tets
+            by design; the barrier is what keeps a robust solve's tets uninverted when a
+            Dirichlet condition or a point-like contact drives a coarse tet flat.
 
     Attributes:
         node_count, dof_count, tet_count: sizes.
@@ -144,8 +151,15 @@ class Elasticity:
         mesh: TetMesh,
         materials: TissueMaterials,
         anti_locking: AntiLocking | str = AntiLocking.NONE,
+        inversion_barrier: float = 0.0,
     ) -> None:
         self.anti_locking = AntiLocking.parse(anti_locking)
+        if not (math.isfinite(inversion_barrier) and 0.0 <= inversion_barrier < 1.0):
+            raise TissueInputError(
+                "inversion_barrier is a volume ratio J in [0, 1) (0: off); got "
+                f"{inversion_barrier!r}"
+            )
+        self.inversion_barrier = float(inversion_barrier)
         self.materials = materials
         self.law = MaterialLaw.parse(materials.law)
         self._law_code = kern.LAW_STABLE if self.law is MaterialLaw.STABLE else kern.LAW_CLASSIC
@@ -172,6 +186,8 @@ class Elasticity:
         # ANP moves lam to the nodes: the per-tet law runs with lam = 0.
         anp = self.anti_locking is AntiLocking.ANP
         self._lam_tet = np.zeros_like(lam) if anp else np.ascontiguousarray(lam)
+        # The barrier's modulus: the law's own volumetric stiffness lam' = lam + mu.
+        self._barrier_modulus = np.ascontiguousarray(mu + lam)
         self.rest_volume_m3 = float(volume.sum())
         self.lumped_mass = np.bincount(
             tets.ravel(), weights=np.repeat(rho * volume / 4.0, 4), minlength=self.node_count
@@ -385,6 +401,8 @@ class Elasticity:
             self._lam_tet,
             pressure,
             self._law_code,
+            self.inversion_barrier,
+            self._barrier_modulus,
             project,
             stage,
             self._coef,

@@ -404,6 +404,8 @@ def element_pass(
     lam: np.ndarray,
     pressure: np.ndarray,
     law: int,
+    barrier_ratio: float,
+    barrier_modulus: np.ndarray,
     project: bool,
     stage: int,
     coef: np.ndarray,
@@ -424,6 +426,11 @@ def element_pass(
       alpha = 1 + mu/lam' (the constant makes W(I) = 0; it changes no force);
     * classic: psi = -mu ln J + lam/2 (ln J)^2; J <= 0 gives W = inf and a zero
       contribution (coef = 0) instead of NaN.
+
+    With ``barrier_ratio`` J_b > 0 the stable law gains, below J_b, the inversion barrier
+    k (-(J - J_b)^2 ln(J / J_b)) (k = ``barrier_modulus[e]`` [Pa]; C2 at J_b, where it and
+    its first two derivatives vanish; convex; infinite as J -> 0+), and J <= 0 gives W = inf
+    as for the classic law. Above J_b nothing changes.
 
     ``pressure`` [Pa] is added to psi'(J) (ANP's averaged nodal pressure; zeros otherwise).
 
@@ -494,6 +501,19 @@ def element_pass(
                 dpsi = lp * dj - m + pressure[e]
                 ddpsi = lp
                 mm = m
+                if barrier_ratio > 0.0 and jac < barrier_ratio:
+                    if jac > 0.0:
+                        k = barrier_modulus[e]
+                        d = jac - barrier_ratio
+                        ln_ratio = math.log(jac / barrier_ratio)
+                        w -= k * d * d * ln_ratio
+                        dpsi -= k * (2.0 * d * ln_ratio + d * d / jac)
+                        ddpsi -= k * (2.0 * ln_ratio + 4.0 * d / jac - d * d / (jac * jac))
+                    else:
+                        w = np.inf
+                        dpsi = 0.0
+                        ddpsi = 0.0
+                        mm = 0.0
             elif jac > 0.0:
                 lnj = math.log1p(dj)
                 # = mu/2 (I_C - 3) - mu ln J + lam/2 (ln J)^2, expanded in H.
