@@ -133,18 +133,7 @@ def test_small_cases_on_4126_tets(case: str, method: str) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(
-    "method",
-    [
-        "lm",
-        "penalty",
-        pytest.param("prescribed", marks=pytest.mark.xfail(
-            strict=True, reason="elastic + kinetic energy exceeds the probe's work (force and "
-            "torque) by up to 2.2 mJ (5 %) while 16 no-slip nodes are held on the way to level "
-            "3, until 3 of them are released in tension; cause not found")),
-        "pbd",
-    ],
-)  # fmt: skip
+@pytest.mark.parametrize("method", METHODS)
 def test_published_level4_poses(method: str, paper_scene_dir) -> None:
     _check(run_hard_case("paper_level4", method, "robust", scene_dir=paper_scene_dir))
 
