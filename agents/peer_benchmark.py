@@ -44,9 +44,13 @@ sank about 2 mm into the 4.1k-tet flex; the ``-hard`` variant uses (0.99, 0.999,
 Speed: wall time of the steps only (our ``ContactModel.step``; MuJoCo's ``mj_step``), summed
 over the run and divided by the simulated time: milliseconds of computation per simulated
 second. ``ratio`` is MuJoCo's over ours (> 1: ours is faster). The ``*_steady`` fields leave
-the first step out on both sides: our first step carries one-time lazy setup (about 0.3 s),
-which over a 1 s press dominates the small levels; MuJoCo's one-time cost is its compile
-(``compile_s``), not counted in either. Targets of issue 3: ratio >= 3
+the first step out on both sides. One-time costs are counted on neither side: MuJoCo's is its
+compile (``compile_s``), ours the model's construction, which loads the compiled kernels and
+the direct solver's library (:meth:`tissue.integrator.ImplicitIntegrator.prepare`; until it
+did, a process's first step took 0.5-3.5 s here, mostly numba loading its cache and pypardiso
+searching the environment for MKL, and dominated a 1 s press at 4.1k tets: LM 0.62 x and
+prescribed 1.34 x in robust mode, against 1.31 x and 4.19 x since, in runs on one loaded
+machine). Targets of issue 3: ratio >= 3
 in paper mode, >= 2 in robust mode. Times are wall clock on a shared machine; compare the
 ratios taken in one run.
 """

@@ -424,6 +424,17 @@ class ImplicitIntegrator:
 
     # ------------------------------------------------------------------ public
 
+    def prepare(self) -> None:
+        """Do the first step's one-time work now, when the model is built: load the compiled
+        element kernels (numba reads them from its cache on a process's first call: ~0.8 s
+        here), the rest stiffness robust mode's first step needs, and the direct solver's
+        library. Without it all of that landed in the first simulated step."""
+        project = bool(self.config.project_psd)
+        self.elasticity.evaluate(self._rest, tangent=True, project_psd=project)
+        if self.config.mode is IntegrationMode.ROBUST:
+            self._rest_stiffness()
+        _ = self.solver.factorizer
+
     def step(
         self,
         positions: NDArray[np.float64],

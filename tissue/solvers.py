@@ -29,7 +29,10 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import glob
 import math
+import os
+import sys
 import time
 import weakref
 from collections.abc import Iterator
@@ -588,8 +591,22 @@ _PARDISO_FUNCTION: list[object] = []
 
 
 def _pardiso_function() -> object:
-    """MKL's ``pardiso`` entry point, located and typed by pypardiso (loaded once)."""
+    """MKL's ``pardiso`` entry point, located and typed by pypardiso (loaded once per process).
+
+    Unless ``PYPARDISO_MKL_RT`` names the library, pypardiso, both at import and in every
+    ``PyPardisoSolver()``, searches the whole Python environment recursively for ``mkl_rt``:
+    0.7-0.9 s each time here (a venv with torch), which landed in the first simulated step.
+    The ``mkl`` wheel puts it in ``<prefix>/lib`` (``Library/bin`` on Windows), so it is named
+    from there first; pypardiso's own search remains the fallback.
+    """
     if not _PARDISO_FUNCTION:
+        if "PYPARDISO_MKL_RT" not in os.environ:
+            patterns = ("lib/libmkl_rt.so*", "lib/libmkl_rt*.dylib", "Library/bin/mkl_rt*.dll")
+            for pattern in patterns:
+                found = sorted(glob.glob(os.path.join(sys.prefix, pattern)), key=len)
+                if found:
+                    os.environ["PYPARDISO_MKL_RT"] = found[0]
+                    break
         import pypardiso
 
         _PARDISO_FUNCTION.append(pypardiso.PyPardisoSolver()._mkl_pardiso)
@@ -846,9 +863,7 @@ class DirectFactorizer:
 
 def _pardiso_available() -> bool:
     try:
-        import pypardiso
-
-        pypardiso.PyPardisoSolver()
+        _pardiso_function()
     except Exception:  # noqa: BLE001 - no MKL runtime on this platform
         return False
     return True
