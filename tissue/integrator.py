@@ -429,10 +429,10 @@ class ImplicitIntegrator:
         element kernels (numba reads them from its cache on a process's first call: ~0.8 s
         here), the rest stiffness robust mode's first step needs, and the direct solver's
         library. Without it all of that landed in the first simulated step."""
-        project = bool(self.config.project_psd)
-        self.elasticity.evaluate(self._rest, tangent=True, project_psd=project)
         if self.config.mode is IntegrationMode.ROBUST:
             self._rest_stiffness()
+        else:  # the same kernels (projection is a run-time flag), nothing kept
+            self.elasticity.evaluate(self._rest, tangent=True)
         _ = self.solver.factorizer
 
     def step(

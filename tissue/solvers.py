@@ -602,10 +602,15 @@ def _pardiso_function() -> object:
     if not _PARDISO_FUNCTION:
         if "PYPARDISO_MKL_RT" not in os.environ:
             patterns = ("lib/libmkl_rt.so*", "lib/libmkl_rt*.dylib", "Library/bin/mkl_rt*.dll")
-            for pattern in patterns:
-                found = sorted(glob.glob(os.path.join(sys.prefix, pattern)), key=len)
-                if found:
-                    os.environ["PYPARDISO_MKL_RT"] = found[0]
+            found = [
+                path
+                for pattern in patterns
+                for path in sorted(glob.glob(os.path.join(sys.prefix, pattern)), key=len)
+            ]
+            for path in found:
+                with contextlib.suppress(OSError):
+                    ctypes.CDLL(path)  # loads: name it; otherwise try the next or search
+                    os.environ["PYPARDISO_MKL_RT"] = path
                     break
         import pypardiso
 
