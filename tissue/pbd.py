@@ -131,7 +131,14 @@ Ten substeps are what a real-time PBD engine runs, and they are not converged un
 deformation: on level 4126 every hard case but the tilted and edge presses fails (a surface
 tet inverts 19-52 % into the case), and the 105k- and 176k-tet levels invert a
 surface tet 6-8 mm in (one Gauss-Seidel sweep per substep moves a contact correction only a
-few elements into a fine mesh). ``PBDConfig.for_mode("robust")`` runs :data:`ROBUST_SUBSTEPS`
+few elements into a fine mesh). On the fine levels the 10-substep calibration is not even
+stable at rest: with nothing touching, round-off grows ~4 x per substep until nodes have
+moved 0.034 mm (26,220 tets, where it saturates within three steps) or 0.7 mm with a tet
+inverted (105,004 tets, two steps); 12,861 tets stay at rest (1e-14 mm after 12 steps). It is
+the stiffer deviatoric scale (0.5456 with volume scale 1 blows up the same way; 1 with
+0.5073 grows slowly), and 20 substeps are stable; the cause is presumably the pre-stressed
+|F| constraint, whose geometric stiffness one projection per substep ignores (not verified).
+``PBDConfig.for_mode("robust")`` runs :data:`ROBUST_SUBSTEPS`
 = 60 substeps (Macklin et al. 2019: substeps converge better than iterations), calibrated the
 same way, with contact points at most :data:`ROBUST_CONTACT_SPACING_M` = 4 mm apart: the
 volume compliance is the material's own (scale 1) and the deviatoric scale is fitted to the
