@@ -40,9 +40,9 @@ from tissue.solvers import LinearSolverConfig
 from tissue.status import StepStatus
 
 #: Robust mode's inversion barrier: below this volume ratio a tet's energy rises without
-#: bound (:class:`tissue.elasticity.Elasticity`). A tissue tet at nu = 0.49 loses a tenth of
-#: its volume only under gross mesh distortion, so the barrier leaves every physical
-#: compression untouched; it acts where a Dirichlet condition or a point-like contact on a
+#: bound (:class:`tissue.elasticity.Elasticity`). A tissue tet at nu = 0.49 keeps far more
+#: than a tenth of its volume under any physical compression, so the barrier leaves those
+#: untouched; it acts where a Dirichlet condition or a point-like contact on a
 #: coarse mesh flattens a tet: measured on the 1,363-tet phantom (lesion 2, prescribed
 #: displacement with one node in contact at 29 mm), the stable law alone let a tet invert.
 ROBUST_INVERSION_BARRIER = 0.1

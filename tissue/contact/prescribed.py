@@ -161,16 +161,13 @@ class PrescribedContact(FEContactModel):
         if self._nodes.size and reaction is not None and reaction.shape[0] == self._nodes.size:
             # The probe pushes the tissue along its outward normal; a node whose reaction
             # pulls it back towards the probe is in tension and is released ...
-            _, normal = self.probe.signed_distance_world(positions[self._nodes])
-            keep = np.einsum("ij,ij->i", reaction, normal) > 0.0
+            distance, normal = self.probe.signed_distance_world(positions[self._nodes])
             # ... unless the probe's new pose holds it inside: then it stays where it is held.
             # Released and at once re-captured at a new entry point, it would slip under the
             # probe while held (no-slip), and that slip's work is not the probe's (published
             # level-4 poses: 1-2 nodes a step; elastic + kinetic energy rose 2.2 mJ, 5 %,
             # above the probe's work); left free, it would lie inside the probe for a step.
-            if not np.all(keep):
-                inside, _ = self.probe.signed_distance_world(positions[self._nodes[~keep]])
-                keep[np.flatnonzero(~keep)[inside < 0.0]] = True
+            keep = (np.einsum("ij,ij->i", reaction, normal) > 0.0) | (distance < 0.0)
         # Contact only pushes: a node the probe's new pose would pull back out of the
         # tissue by more than ``_PULL_RELEASE_M`` (a probe withdrawn faster than the skin
         # can follow) is released now; slower withdrawal shows as tension one step later.
