@@ -192,6 +192,54 @@ def test_inversion_is_reported(block: TetMesh, monkeypatch: pytest.MonkeyPatch) 
     assert np.all(np.isfinite(model.node_positions))
 
 
+def _one_tet(
+    flatten_to: float, fixed_first: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A unit right tet with its apex lowered to a volume ratio ``flatten_to``: positions
+    [m] (4, 3), inverse masses [1/kg] (4,), tets (1, 4), Dm^-1 (1, 3, 3), 1 / det Dm (1,)."""
+    rest = np.array([[0.0, 0, 0], [1e-3, 0, 0], [0, 1e-3, 0], [0, 0, 1e-3]])
+    edges = (rest[1:] - rest[0]).T[None]
+    x = rest.copy()
+    x[3, 2] *= flatten_to
+    inv_mass = np.full(4, 1e3)
+    if fixed_first:
+        inv_mass[0] = 0.0
+    return x, inv_mass, np.array([[0, 1, 2, 3]]), np.linalg.inv(edges), 1.0 / np.linalg.det(edges)
+
+
+def _volume_ratio(x: np.ndarray) -> float:
+    return float(np.linalg.det((x[1:] - x[0]).T) / 1e-9)
+
+
+@pytest.mark.parametrize("start", [0.02, -0.05])
+def test_volume_floor_lifts_a_crushed_tet(start: float) -> None:
+    """The robust floor projects a tet below det F = 0.1 (even an inverted one) back up to
+    it, momentum-conserving among free nodes (equal masses: the centroid stays put)."""
+    x, inv_mass, tets, dm_inv, inv_det = _one_tet(start)
+    centroid = x.mean(axis=0)
+    support = np.zeros((4, 3))
+    for _ in range(3):  # one projection is first order; repeats end at or just above it
+        pbd._enforce_volume_floor(x, inv_mass, tets, dm_inv, inv_det, 0.1, support)
+    assert 0.1 <= _volume_ratio(x) < 0.11
+    np.testing.assert_allclose(x.mean(axis=0), centroid, atol=1e-15)
+    np.testing.assert_array_equal(support, 0.0)
+
+
+def test_volume_floor_leaves_other_tets_and_counts_fixed_node_support() -> None:
+    x, inv_mass, tets, dm_inv, inv_det = _one_tet(0.5)
+    before = x.copy()
+    support = np.zeros((4, 3))
+    assert pbd._enforce_volume_floor(x, inv_mass, tets, dm_inv, inv_det, 0.1, support) == 0
+    np.testing.assert_array_equal(x, before)
+    x, inv_mass, tets, dm_inv, inv_det = _one_tet(0.05, fixed_first=True)
+    fixed = x[0].copy()
+    assert pbd._enforce_volume_floor(x, inv_mass, tets, dm_inv, inv_det, 0.1, support) == 1
+    np.testing.assert_array_equal(x[0], fixed)
+    # The fixed node's share of the correction is the base's reaction, not lost.
+    assert np.linalg.norm(support[0]) > 0.0
+    assert _volume_ratio(x) > 0.05
+
+
 @pytest.mark.parametrize(
     ("overrides", "name"),
     [
@@ -210,6 +258,9 @@ def test_inversion_is_reported(block: TetMesh, monkeypatch: pytest.MonkeyPatch) 
         ({"friction": 0.3}, "friction"),
         ({"friction": "none"}, "friction"),
         ({"substep": 10}, "substep"),
+        ({"volume_floor": -0.1}, "volume_floor"),
+        ({"volume_floor": 1.0}, "volume_floor"),
+        ({"volume_floor": float("nan")}, "volume_floor"),
     ],
 )
 def test_bad_config_names_the_value(overrides: dict, name: str) -> None:
@@ -241,6 +292,7 @@ def test_configurations_by_mode() -> None:
     robust = PBDConfig.for_mode("robust")
     assert robust.substeps == pbd.ROBUST_SUBSTEPS > PBDConfig().substeps
     assert robust.volume_compliance_scale == pbd.ROBUST_VOLUME_COMPLIANCE_SCALE
+    assert robust.volume_floor == pbd.ROBUST_VOLUME_FLOOR > PBDConfig().volume_floor == 0.0
     with pytest.raises(ConfigError, match="unknown PBD configuration 'fast'"):
         PBDConfig.for_mode("fast")
 
