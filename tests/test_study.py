@@ -303,3 +303,16 @@ def test_a_killed_study_takes_its_workers_with_it() -> None:
     while time.monotonic() < deadline and _running(worker):
         time.sleep(0.05)
     assert not _running(worker)
+
+
+@pytest.mark.slow
+def test_robust_pbd_cell_with_a_flattening_sliver_completes() -> None:
+    """The study cell where the robust PBD's worst-shaped tet at 26,220 tets flattened 1-2 %
+    a step to inverted (83 % before the volume floor) now completes (about 1-2 minutes)."""
+    from agents.study.cell import run_cell
+
+    spec = StudySpec(levels=(26220,), lesions=(8,), reference_level=26220)
+    record = run_cell(spec, Cell(StudyConfig.ROBUST, ContactMethod.PBD, 26220, 8))
+    assert record["instability"] is None, record["instability"]
+    assert record["stability_percent"] == 100.0 and record["status"] == "ok"
+    assert len(record["tracked_m"]) == 4
