@@ -222,8 +222,8 @@ ROBUST_DEVIATORIC_COMPLIANCE_SCALE = 1.16
 ROBUST_VOLUME_COMPLIANCE_SCALE = 1.0
 # Mass-proportional damping of the robust configuration [1/s] (see "Robust configuration").
 ROBUST_DAMPING_PER_S = 30.0
-# The robust configuration's volume floor: no tet keeps det F below it after its projection
-# (the FE's inversion barrier acts below the same ratio; see "Volume floor").
+# The robust configuration's volume floor: no tet ends a substep with det F below it (to
+# first order; the FE's inversion barrier acts below the same ratio; see "Volume floor").
 ROBUST_VOLUME_FLOOR = 0.1
 
 # Mismatch bounds the calibrated defaults must meet on the default phantom (measured -0.20 %
@@ -267,9 +267,10 @@ class PBDConfig:
         contact_spacing_m: the largest distance between contact points on the boundary [m]
             (>= 0): points are added between boundary nodes farther apart, embedded in their
             faces (0: the nodes only, as a particle engine; see the module docstring).
-        volume_floor: the smallest volume ratio det F a tet may keep after its projection,
-            in [0, 1) (0 = none, as a particle engine; the robust configuration's is
-            :data:`ROBUST_VOLUME_FLOOR`): a hard one-sided constraint det F >= floor.
+        volume_floor: the smallest volume ratio det F a tet may end a substep with, in
+            [0, 1) (0 = none, as a particle engine; the robust configuration's is
+            :data:`ROBUST_VOLUME_FLOOR`): a hard one-sided constraint det F >= floor,
+            projected once after each substep's sweeps.
     """
 
     tissue_dt: float = 0.02
@@ -519,8 +520,10 @@ def _enforce_volume_floor(
 
     A hard one-sided constraint (zero compliance), run after a substep's sweeps: within a
     sweep a tet's own projection can lift it while its neighbours' push it back below, so
-    the floor must come last. ``inv_det_dm``: 1 / det Dm per tet [1/m^3], (tet_count,);
-    the other arguments as :func:`_project_tets`. Returns the count projected.
+    the floor must come last (after the contacts too: a node it moves may end the substep a
+    little inside the probe, which the next substep's contacts correct and the step's
+    penetration reports). ``inv_det_dm``: 1 / det Dm per tet [1/m^3], (tet_count,); the
+    other arguments as :func:`_project_tets`. Returns the count projected.
     """
     gh = np.empty((4, 3))
     f = np.empty((3, 3))
