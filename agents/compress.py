@@ -96,8 +96,12 @@ def run_compression(
     progress: bool = False,
     monitor: StabilityMonitor | None = None,
     observer: Callable[[ContactResult, NDArray[np.float64]], None] | None = None,
+    max_settle_steps: int = MAX_SETTLE_STEPS,
 ) -> dict[str, Any]:
     """Drive ``model`` through the waypoints; returns the JSON-ready record.
+
+    At each waypoint with a depth the probe holds still until no node moves faster than
+    :data:`SETTLED_SPEED_M_S`, or for ``max_settle_steps`` steps, and the level is recorded.
 
     With a ``monitor`` the run stops at the first unstable step (the step is recorded) and
     the record gains ``instability`` ({step, kind, detail}, or None) and
@@ -155,7 +159,7 @@ def run_compression(
         position, quat = stop.position.copy(), stop.quat_wxyz.copy()
         if stop.depth_m is None:
             continue
-        for _ in range(MAX_SETTLE_STEPS):
+        for _ in range(max_settle_steps):
             previous = model.node_positions.copy()
             result = take(position, quat)
             level_status = worst(level_status, result.status)

@@ -135,6 +135,13 @@ def test_study_refuses_different_physics_in_the_same_directory(tiny_study) -> No
     )  # fmt: skip
     with pytest.raises(ConfigError, match="depths_m"):
         run_study(changed, out, progress=False, log=_quiet)
+    # A different hold at each depth is different physics too (the settled points move).
+    longer = StudySpec(
+        methods=TINY.methods, levels=TINY.levels, lesions=TINY.lesions, reference_level=1363,
+        depths_m=TINY.depths_m, settle_steps=TINY.settle_steps + 1,
+    )  # fmt: skip
+    with pytest.raises(ConfigError, match="settle_steps"):
+        run_study(longer, out, progress=False, log=_quiet)
 
 
 @pytest.mark.parametrize(
@@ -148,6 +155,7 @@ def test_study_refuses_different_physics_in_the_same_directory(tiny_study) -> No
         (["--config", "fast"], "unknown configuration 'fast'"),
         (["--lesions", "11"], "not in the synthetic scene"),
         (["--workers", "0"], "--workers"),
+        (["--settle-steps", "0"], "settle_steps must be a whole number of steps >= 1"),
         (
             [
                 "--levels",
@@ -316,3 +324,23 @@ def test_robust_pbd_cell_with_a_flattening_sliver_completes() -> None:
     assert record["instability"] is None, record["instability"]
     assert record["stability_percent"] == 100.0 and record["status"] == "ok"
     assert len(record["tracked_m"]) == 4
+
+
+@pytest.mark.slow
+def test_robust_lm_settles_onto_its_own_levels_reference() -> None:
+    """The study's accuracy check on itself: robust LM on the reference's own level, driven
+    dynamically at 0.01 m/s and settled, lands within 0.1 mm of the quasi-static reference at
+    every depth (lesion 1 on 4,126 tets, about 30 s). With the old protocol it did not: the
+    reference's 2 mm increments jumped to another equilibrium at 20 and 25 mm (0.51 and 0.54
+    mm away) and a 50-step hold left the 30 mm point 2.16 mm short of settling."""
+    from agents.study.cell import run_cell, scene_for
+    from agents.study.reference import compute_reference
+
+    spec = StudySpec(levels=(4126,), lesions=(1,), reference_level=4126)
+    reference = compute_reference(spec, scene_for(spec.scene), 1)
+    record = run_cell(spec, Cell(StudyConfig.ROBUST, ContactMethod.LM, 4126, 1))
+    assert record["stability_percent"] == 100.0 and reference["instability"] is None
+    errors = np.linalg.norm(
+        np.subtract(record["tracked_m"], reference["tracked_m"]), axis=1
+    )  # fmt: skip
+    assert len(errors) == 4 and errors.max() < 1e-4, np.round(errors * 1e3, 3)

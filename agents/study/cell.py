@@ -51,7 +51,9 @@ def run_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
     )
     start, stops = scene.path(mesh, shape, cell.lesion, spec.depths_m)
     monitor = StabilityMonitor(cell.method, mesh.nodes, start.position, STUDY_LIMITS)
-    run = run_compression(model, start, stops, spec.speed_m_s, monitor=monitor)
+    run = run_compression(
+        model, start, stops, spec.speed_m_s, monitor=monitor, max_settle_steps=spec.settle_steps
+    )
     assert mesh.landmarks is not None
     tracked = mesh.landmarks.names.index(scene.landmark_name(cell.lesion))
     step_ms = np.array([step["compute_ms"] for step in run["steps"]], dtype=np.float64)

@@ -10,6 +10,7 @@ from agents.study.spec import (
     QUICK_LESIONS,
     QUICK_LEVELS,
     QUICK_REFERENCE_LEVEL,
+    STUDY_SETTLE_STEPS,
     StudySpec,
 )
 from tissue.contact.base import ContactMethod
@@ -37,6 +38,12 @@ def add_study_arguments(study: argparse.ArgumentParser) -> None:
     study.add_argument("--reference-level", default=None, help="level of the converged reference")
     study.add_argument("--measured", type=Path, default=None, help="CSV of measured positions")
     study.add_argument("--speed", type=float, default=0.01, help="probe speed [m/s]")
+    study.add_argument(
+        "--settle-steps",
+        type=int,
+        default=STUDY_SETTLE_STEPS,
+        help=f"most steps held still at each depth to settle (default {STUDY_SETTLE_STEPS})",
+    )
     study.add_argument("--workers", type=int, default=1, help="local worker processes")
     study.add_argument("--ray", default=None, help="Ray address (auto, local or host:port)")
     study.add_argument("--out", type=Path, default=Path("study"), help="output directory")
@@ -90,6 +97,7 @@ def spec_from_args(args: argparse.Namespace) -> StudySpec:
         depths_m=depths,
         reference_level=reference,
         speed_m_s=args.speed,
+        settle_steps=args.settle_steps,
         measured_csv=args.measured,
     )
 

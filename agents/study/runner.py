@@ -38,7 +38,14 @@ RESULTS_FILE = "results.jsonl"
 SPEC_FILE = "study.json"
 REFERENCES_FILE = "references.json"
 # Settings that change the physics of a cell: a rerun must keep them.
-_PHYSICS_KEYS = ("scene", "depths_m", "speed_m_s", "reference_level", "measured_csv")
+_PHYSICS_KEYS = (
+    "scene",
+    "depths_m",
+    "speed_m_s",
+    "settle_steps",
+    "reference_level",
+    "measured_csv",
+)
 
 
 @dataclass

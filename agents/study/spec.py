@@ -25,6 +25,13 @@ DEFAULT_DEPTHS_M = (0.01, 0.02, 0.025, 0.03)
 #: The probe's speed [m/s] and the tissue step [s], as the paper.
 PAPER_SPEED_M_S = 0.01
 PAPER_DT_S = 0.02
+#: Steps a cell may hold still at each depth to settle (5 s at 0.02 s; it stops earlier once
+#: no node moves faster than 0.1 mm/s). Measured with robust LM on the 4,126-tet level against
+#: its own quasi-static reference: after 50 steps (``probegym compress``'s hold) lesion 1 at 30
+#: mm was still 2.16 mm from equilibrium and lesion 5 1.15 mm (the tissue creeps for seconds
+#: under the probe); after 100 / 150 / 200 / 300 steps lesion 1 was 0.61 / 0.24 / 0.12 / 0.08
+#: mm away, and five lesions were within 0.08 mm at every depth after 300.
+STUDY_SETTLE_STEPS = 250
 #: ``--quick``: levels up to 4,126 tets, three lesions; the reference on the next level up,
 #: 7,369 tets, to keep the run within minutes (a 176,506-tet reference takes hours here), so
 #: quick errors near 4,126 tets are underestimates.
@@ -98,6 +105,8 @@ class StudySpec:
             poses fix its own), increasing.
         reference_level: the level the converged reference runs on.
         speed_m_s: probe speed [m/s].
+        settle_steps: the most steps a cell holds still at each depth to settle (see
+            :data:`STUDY_SETTLE_STEPS`).
         measured_csv: measured lesion positions to score against instead of the reference.
     """
 
@@ -110,6 +119,7 @@ class StudySpec:
     reference_level: int = PHANTOM_LEVELS[-1]
     speed_m_s: float = PAPER_SPEED_M_S
     measured_csv: Path | None = field(default=None)
+    settle_steps: int = STUDY_SETTLE_STEPS
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "methods", tuple(ContactMethod.parse(m) for m in self.methods))
@@ -140,6 +150,13 @@ class StudySpec:
         object.__setattr__(self, "depths_m", tuple(float(d) for d in depths))
         if not (np.isfinite(self.speed_m_s) and self.speed_m_s > 0):
             raise ConfigError(f"the probe speed must be > 0 m/s; got {self.speed_m_s!r}")
+        steps = self.settle_steps
+        if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
+            raise ConfigError(
+                f"settle_steps must be a whole number of steps >= 1; got {steps!r} (default "
+                f"{STUDY_SETTLE_STEPS}: a hold of up to 5 s at each depth)"
+            )
+        object.__setattr__(self, "settle_steps", int(steps))
         if self.scene == "synthetic" and NATIVE_LEVEL in (*self.levels, self.reference_level):
             raise ConfigError(
                 "the 'published' level is the published scene's own mesh; use it with "
@@ -166,6 +183,7 @@ class StudySpec:
             "depths_m": list(self.depths_m),
             "reference_level": self.reference_level,
             "speed_m_s": self.speed_m_s,
+            "settle_steps": self.settle_steps,
             "measured_csv": None if self.measured_csv is None else str(self.measured_csv),
         }
 
