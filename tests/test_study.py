@@ -239,9 +239,13 @@ def test_published_scene_runs_one_lesion(tmp_path: Path, paper_scene_dir: Path) 
     lm = next(r for r in outcome.records if r["key"] == "robust/lm/0/1")
     # Robust LM on the reference's own mesh, dynamic and settled, against the quasi-static
     # reference: the whole experiment completes, and the first depth (9 mm) agrees to
-    # 0.1 mm. (Deeper, the two part by about 3 mm -- measured 2.9 and 3.2 mm at levels 2
-    # and 3 -- and the quasi-static reference stops before level 4: an open question of
-    # issue 4, left visible here rather than hidden by a loose tolerance.)
+    # 0.1 mm. (Deeper, the two part: measured 2.99 / 3.26 / 7.51 mm at levels 2-4 with the
+    # reference in 1 mm increments and 250-step holds, forces 2.61 / 3.10 / 1.77 N for the
+    # reference against 2.23 / 2.68 / 3.65 N for the cell: on these real poses, which tilt
+    # as well as press, the quasi-static path and the dynamic one settle on different
+    # equilibria. An open question of issue 4, left visible here rather than hidden by a
+    # loose tolerance; on the synthetic phantom's normal presses the two agree to 0.1 mm,
+    # see test_robust_lm_settles_onto_its_own_levels_reference.)
     assert lm["status"] == "ok" and len(lm["tracked_m"]) == 4
     assert lm["errors_m"][0] is not None and lm["errors_m"][0] < 1e-4
     assert "published" in (tmp_path / "stability.md").read_text()
