@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.compress import SETTLED_SPEED_M_S
 from agents.study.spec import StudySpec, level_label
 
 METHOD_ORDER = ("lm", "penalty", "prescribed", "pbd")
@@ -357,7 +358,9 @@ def _write_markdown_and_html(
         "",
         "Reproduces the compression study of Tagliabue et al. (2020): the probe on the skin "
         "above each lesion, normal to the surface, at "
-        f"{spec.speed_m_s * 1e3:g} mm/s with h = 20 ms, through the depths, settling at each.",
+        f"{spec.speed_m_s * 1e3:g} mm/s with h = 20 ms, through the depths, settling at each "
+        f"(held until no node moves faster than {SETTLED_SPEED_M_S * 1e3:g} mm/s, at most "
+        f"{spec.settle_steps} steps).",
         "",
         "## Configuration",
         "",
