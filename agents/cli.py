@@ -94,6 +94,12 @@ def _build_parser() -> argparse.ArgumentParser:
         "--depths", type=_floats, default=None, help="D1,D2,... [m] past first contact"
     )
     compress.add_argument("--speed", type=float, default=0.01, help="probe speed [m/s]")
+    compress.add_argument(
+        "--settle-steps",
+        type=int,
+        default=None,
+        help="most steps held still at each depth to settle (default 250, 5 s)",
+    )
     compress.add_argument("--method", default="lm", help="penalty | lm | prescribed | pbd")
     compress.add_argument("--mode", default="robust", help="paper | robust")
     compress.add_argument("--online", action="store_true", help="prescribed: update contact set")

@@ -7,7 +7,14 @@ from pathlib import Path
 
 import numpy as np
 
-from agents.compress import build_model, plan_scene, plan_straight, run_compression, write_json
+from agents.compress import (
+    ACCURATE_SETTLE_STEPS,
+    build_model,
+    plan_scene,
+    plan_straight,
+    run_compression,
+    write_json,
+)
 from tissue.contact.stability import StabilityMonitor
 from tissue.errors import ConfigError
 from tissue.mesh import TetMesh
@@ -56,6 +63,12 @@ def spring_nodes_to_volume(mesh: TetMesh, spring_vertices: np.ndarray) -> tuple[
 
 def run_compress_command(args: argparse.Namespace) -> int:
     """Validate the arguments, run the compression, write the JSON; returns the exit code."""
+    settle = ACCURATE_SETTLE_STEPS if args.settle_steps is None else args.settle_steps
+    if settle < 1:
+        raise ConfigError(
+            f"--settle-steps must be a whole number of steps >= 1; got {settle} "
+            f"(default {ACCURATE_SETTLE_STEPS}: a hold of up to 5 s at each depth)"
+        )
     given_nodes = None
     if args.scene is not None:
         from tissue.paper_scene import load_paper_scene
@@ -92,7 +105,15 @@ def run_compress_command(args: argparse.Namespace) -> int:
         f"method {args.method}, mode {args.mode}, {len(stops)} levels"
     )
     monitor = StabilityMonitor(args.method, mesh.nodes, start.position)
-    record = run_compression(model, start, stops, args.speed, progress=True, monitor=monitor)
+    record = run_compression(
+        model,
+        start,
+        stops,
+        args.speed,
+        progress=True,
+        monitor=monitor,
+        max_settle_steps=settle,
+    )
     record["config"] = {
         "mesh": mesh.name,
         "tets": mesh.tet_count,

@@ -230,3 +230,39 @@ def test_bad_contact_input_is_named(block) -> None:
     with pytest.raises(ConfigError, match="online"):
         PrescribedParams(online=True, node_set=(1, 2))
     assert ContactMethod.parse("pbd") is ContactMethod.PBD
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--method", "fem"], "unknown contact method 'fem'"),
+        (["--probe", "banana"], "banana"),
+        (["--settle-steps", "0"], "--settle-steps must be a whole number of steps >= 1"),
+    ],
+)
+def test_compress_command_names_bad_arguments(
+    tmp_path, arguments: list[str], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from agents.cli import main
+
+    out = tmp_path / "never.json"
+    code = main(["compress", "--mesh", "623", "--json", str(out), *arguments])
+    assert code == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_compress_command_holds_at_most_settle_steps(tmp_path) -> None:
+    import json
+
+    from agents.cli import main
+
+    out = tmp_path / "run.json"
+    code = main(["compress", "--mesh", "623", "--method", "penalty", "--depths", "0.004",
+                 "--settle-steps", "3", "--json", str(out)])  # fmt: skip
+    assert code == 0
+    record = json.loads(out.read_text())
+    # 1 mm of clearance and 4 mm of travel at 0.2 mm per step, then 3 held steps (the default
+    # hold needs 8 here before no node moves faster than 0.1 mm/s).
+    assert len(record["levels"]) == 1
+    assert len(record["steps"]) == 25 + 3

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from agents.compress import ACCURATE_SETTLE_STEPS
 from tissue.choices import Choice
 from tissue.contact.base import ContactMethod
 from tissue.errors import ConfigError
@@ -25,13 +26,9 @@ DEFAULT_DEPTHS_M = (0.01, 0.02, 0.025, 0.03)
 #: The probe's speed [m/s] and the tissue step [s], as the paper.
 PAPER_SPEED_M_S = 0.01
 PAPER_DT_S = 0.02
-#: Steps a cell may hold still at each depth to settle (5 s at 0.02 s; it stops earlier once
-#: no node moves faster than 0.1 mm/s). Measured with robust LM on the 4,126-tet level against
-#: its own quasi-static reference: after 50 steps (``probegym compress``'s hold) lesion 1 at 30
-#: mm was still 2.16 mm from equilibrium and lesion 5 1.15 mm (the tissue creeps for seconds
-#: under the probe); after 100 / 150 / 200 / 300 steps lesion 1 was 0.61 / 0.24 / 0.12 / 0.08
-#: mm away, and five lesions were within 0.08 mm at every depth after 300.
-STUDY_SETTLE_STEPS = 250
+#: Steps a cell may hold still at each depth to settle; it stops earlier once no node moves
+#: faster than 0.1 mm/s (see :data:`agents.compress.ACCURATE_SETTLE_STEPS`).
+STUDY_SETTLE_STEPS = ACCURATE_SETTLE_STEPS
 #: ``--quick``: levels up to 4,126 tets, three lesions; the reference on the next level up,
 #: 7,369 tets, to keep the run within minutes (a 176,506-tet reference takes hours here), so
 #: quick errors near 4,126 tets are underestimates.
