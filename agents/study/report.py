@@ -379,8 +379,12 @@ def _write_markdown_and_html(
         stability,
         "## Accuracy and time",
         "",
-        "Median localisation error (eq. 12, valid depths only) and median compute time per "
-        "step, per configuration, method and level.",
+        "Median localisation error (eq. 12) and median compute time per step, per "
+        "configuration, method and level. Errors count only the valid depths: those every "
+        "method of the configuration reached for that lesion and level (the paper's valid "
+        "deformations). A configuration whose cells stop early is therefore scored on "
+        "shallower, easier depths: compare methods within a configuration, not one "
+        "configuration's errors with the other's.",
         "",
         "| config | method | level | tets | cells | median error [mm] | median step [ms] "
         "| mean stability [%] |",
