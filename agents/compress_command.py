@@ -121,6 +121,7 @@ def run_compress_command(args: argparse.Namespace) -> int:
         "mode": args.mode,
         "probe": shape.name,
         "speed_m_s": args.speed,
+        "settle_steps": settle,
         "online": bool(args.online),
     }
     write_json(record, args.json)

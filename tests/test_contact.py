@@ -266,3 +266,4 @@ def test_compress_command_holds_at_most_settle_steps(tmp_path) -> None:
     # hold needs 8 here before no node moves faster than 0.1 mm/s).
     assert len(record["levels"]) == 1
     assert len(record["steps"]) == 25 + 3
+    assert record["config"]["settle_steps"] == 3
