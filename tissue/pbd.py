@@ -413,6 +413,17 @@ def _deformation(
 
 
 @nb.njit(cache=True, inline="always")
+def _edge_determinant(x: NDArray[np.float64], tets: NDArray[np.int64], t: int) -> float:
+    """det Ds of tet ``t`` [m^3]: the triple product of its edges from node 0 (6 x its signed
+    volume)."""
+    i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+    a0, a1, a2 = x[i1, 0] - x[i0, 0], x[i1, 1] - x[i0, 1], x[i1, 2] - x[i0, 2]
+    b0, b1, b2 = x[i2, 0] - x[i0, 0], x[i2, 1] - x[i0, 1], x[i2, 2] - x[i0, 2]
+    c0, c1, c2 = x[i3, 0] - x[i0, 0], x[i3, 1] - x[i0, 1], x[i3, 2] - x[i0, 2]
+    return a0 * (b1 * c2 - b2 * c1) - a1 * (b0 * c2 - b2 * c0) + a2 * (b0 * c1 - b1 * c0)
+
+
+@nb.njit(cache=True, inline="always")
 def _node_gradients(
     d_dF: NDArray[np.float64],
     dm_inv: NDArray[np.float64],
@@ -531,12 +542,7 @@ def _enforce_volume_floor(
     hits = 0
     for t in range(tets.shape[0]):
         # A cheap screen first: det F = det Ds / det Dm from the edges alone.
-        i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
-        a0, a1, a2 = x[i1, 0] - x[i0, 0], x[i1, 1] - x[i0, 1], x[i1, 2] - x[i0, 2]
-        b0, b1, b2 = x[i2, 0] - x[i0, 0], x[i2, 1] - x[i0, 1], x[i2, 2] - x[i0, 2]
-        c0, c1, c2 = x[i3, 0] - x[i0, 0], x[i3, 1] - x[i0, 1], x[i3, 2] - x[i0, 2]
-        det_ds = a0 * (b1 * c2 - b2 * c1) - a1 * (b0 * c2 - b2 * c0) + a2 * (b0 * c1 - b1 * c0)
-        if det_ds * inv_det_dm[t] >= volume_floor:
+        if _edge_determinant(x, tets, t) * inv_det_dm[t] >= volume_floor:
             continue
         det = _deformation(x, tets, dm_inv, t, f, cof)
         _node_gradients(cof, dm_inv, t, 1.0, gh)
@@ -669,17 +675,7 @@ def _min_volume_ratio(
     """Smallest deformed / rest signed tet volume (det F); <= 0 means an inverted tet."""
     smallest = np.inf
     for t in range(tets.shape[0]):
-        i0 = tets[t, 0]
-        e = np.empty((3, 3))
-        for j in range(3):
-            for a in range(3):
-                e[j, a] = x[tets[t, j + 1], a] - x[i0, a]
-        volume = (
-            e[0, 0] * (e[1, 1] * e[2, 2] - e[1, 2] * e[2, 1])
-            - e[0, 1] * (e[1, 0] * e[2, 2] - e[1, 2] * e[2, 0])
-            + e[0, 2] * (e[1, 0] * e[2, 1] - e[1, 1] * e[2, 0])
-        ) / 6.0
-        ratio = volume / rest_volume[t]
+        ratio = _edge_determinant(x, tets, t) / 6.0 / rest_volume[t]
         if not ratio >= smallest:  # also catches NaN
             smallest = ratio
     return smallest
