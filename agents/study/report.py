@@ -401,12 +401,13 @@ def _write_markdown_and_html(
     lines += ["", "![errors](errors.png)", "", "![times](times.png)", "",
               "![accuracy vs time](accuracy_vs_time.png)", "", "## Reference", ""]  # fmt: skip
     if references:
-        lines += ["| lesion | level | tets | depths reached | status | wall [s] |",
-                  "|---|---|---|---|---|---|"]  # fmt: skip
+        lines += ["| lesion | kind | level | tets | depths reached | status | wall [s] |",
+                  "|---|---|---|---|---|---|---|"]  # fmt: skip
         for lesion, ref in sorted(references.items()):
             status = "ok" if ref["instability"] is None else ref["instability"]["kind"]
             lines.append(
-                f"| {lesion} | {ref['level_label']} | {ref['tets']:,} | "
+                f"| {lesion} | {ref.get('kind', 'quasi-static')} | {ref['level_label']} "
+                f"| {ref['tets']:,} | "
                 f"{len(ref['tracked_m'])}/{len(ref['depths_m'])} | {status} "
                 f"| {ref['wall_s']:.1f} |"
             )

@@ -69,6 +69,8 @@ def parse_study_level(value: str | int) -> int:
     """A ladder level (target tet count) or ``native``/``published`` (the scene's own mesh)."""
     if isinstance(value, str) and value.strip().lower() in ("native", "published"):
         return NATIVE_LEVEL
+    if value == NATIVE_LEVEL and not isinstance(value, bool):  # already parsed (a copy)
+        return NATIVE_LEVEL
     return parse_level(value)
 
 
