@@ -86,6 +86,9 @@ def test_tiny_study_writes_every_output_consistently(tiny_study) -> None:
     assert len(summary) == 2 * 2 * 2  # configs x methods x levels
     report = (out / "report.md").read_text()
     assert "errors.png" in report and "Stability" in report and "cpu_count" in report
+    depths = ", ".join(f"{d * 1e3:g}" for d in TINY.depths_m)
+    assert f"pressed through {depths} mm past first contact" in report
+    assert "| 1 | quasi-static | 1,363 |" in report  # the reference table names its kind
     assert "<table" in (out / "report.html").read_text()
 
 
@@ -276,6 +279,8 @@ def test_published_scene_runs_one_lesion(tmp_path: Path, paper_scene_dir: Path) 
     assert all(e is not None for e in lm["errors_m"]), lm["errors_m"]
     assert max(lm["errors_m"]) < 1e-4, lm["errors_m"]
     assert outcome.references[1]["kind"] == "dynamic"
+    report = (tmp_path / "report.md").read_text()
+    assert "own published poses" in report and "| 1 | dynamic | published |" in report
     assert "published" in (tmp_path / "stability.md").read_text()
 
 

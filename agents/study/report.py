@@ -345,6 +345,20 @@ def write_report(
     _write_markdown_and_html(out, spec, records, references, stability, rows)
 
 
+def _path_words(spec: StudySpec) -> str:
+    """How the probe moves in this study's scene, in words for the report."""
+    if spec.scene == "synthetic":
+        depths = ", ".join(f"{d * 1e3:g}" for d in spec.depths_m)
+        return (
+            "the probe on the skin above each lesion, normal to the surface, pressed through "
+            f"{depths} mm past first contact"
+        )
+    return (
+        "the probe through the scene's own published poses for each lesion (Transform1..4, "
+        "which tilt as well as press; `depths_m` below does not apply)"
+    )
+
+
 def _write_markdown_and_html(
     out: Path,
     spec: StudySpec,
@@ -356,9 +370,8 @@ def _write_markdown_and_html(
     lines = [
         "# probegym compression study",
         "",
-        "Reproduces the compression study of Tagliabue et al. (2020): the probe on the skin "
-        "above each lesion, normal to the surface, at "
-        f"{spec.speed_m_s * 1e3:g} mm/s with h = 20 ms, through the depths, settling at each "
+        f"Reproduces the compression study of Tagliabue et al. (2020): {_path_words(spec)}, at "
+        f"{spec.speed_m_s * 1e3:g} mm/s with h = 20 ms, settling at each depth "
         f"(held until no node moves faster than {SETTLED_SPEED_M_S * 1e3:g} mm/s, at most "
         f"{spec.settle_steps} steps).",
         "",
