@@ -209,6 +209,15 @@ def test_valid_errors_keep_only_depths_every_method_reached() -> None:
     records = [record("lm", [1.0, 2.0, 3.0]), record("penalty", [1.5, None]), record("pbd", [4.0])]
     errors = valid_errors(records, ["paper"])["paper"]
     assert errors == {("lm", 623): [1.0], ("penalty", 623): [1.5], ("pbd", 623): [4.0]}
+    # A method that failed before its first depth drops out of the case; the others keep
+    # the depths they all reached.
+    records[2] = record("pbd", [])
+    errors = valid_errors(records, ["paper"])["paper"]
+    assert errors == {("lm", 623): [1.0], ("penalty", 623): [1.5]}
+    assert valid_errors(records[:2] + [record("prescribed", [2.0])], ["paper"])["paper"] == {
+        ("lm", 623): [1.0], ("penalty", 623): [1.5], ("prescribed", 623): [2.0]
+    }  # fmt: skip
+    assert valid_errors(records[:1], ["paper"])["paper"] == {("lm", 623): [1.0, 2.0, 3.0]}
 
 
 def test_pareto_front_marks_undominated_points() -> None:
