@@ -24,9 +24,9 @@ KKT residual (force balance on the free dofs) is below the Newton tolerance.
 columns A^-1 H^T, never all held at once (thousands of constraints on a fine mesh would
 take GBs), and the correction is one more solve.
 
-``robust`` mode on large systems (at least ``_KEEP_FACTORIZATION_UNKNOWNS``, the 105k- and
-176k-tet levels, where one factorisation takes seconds) keeps a factorisation F across
-Newton iterations and steps instead:
+``robust`` mode on all but the smallest systems (at least ``_KEEP_FACTORIZATION_UNKNOWNS``,
+every phantom level from 4,126 tets up) keeps a factorisation F across Newton iterations and
+steps instead:
 
 - solves with A are CG preconditioned by F (``reuse`` solves; F is refreshed when CG
   stalls), to the inexact-Newton tolerance;
@@ -36,7 +36,8 @@ Newton iterations and steps instead:
   gaps evaluated with A; with F = A one round is exact, and F is refreshed when a few
   rounds do not bring the gaps within the contact tolerance of the prediction.
 
-On smaller systems refactorising every iteration is cheaper (see the constant's comment).
+On smaller systems refactorising every iteration costs the same or less (see the
+constant's comment).
 
 lambda are the contact forces. A small regularisation eps I on W keeps PGS well posed when
 several points of a flat face are redundant constraints (background.md).
@@ -64,10 +65,13 @@ from tissue.status import StepStatus
 
 # Robust steps on systems with at least this many unknowns keep a factorisation across
 # Newton iterations and steps (see the module docstring); smaller ones refactorise every
-# iteration, which is cheaper there: measured here, a factorisation of the 26k-tet phantom
-# costs ~170 ms and a solve with it ~7 ms, while the tangent of consecutive 0.2 mm steps
-# differs enough that a kept one needs 4-5 CG iterations per solve and 2-6 response rounds.
-_KEEP_FACTORIZATION_UNKNOWNS = 60_000
+# iteration. Measured here on whole study cells (robust LM, lesion 1, 30 mm, idle machine,
+# one run each, wall time kept / refactorised): 623 tets (630 unknowns) 3 / 2 s; 2,539
+# (2,025) 6 / 6 s; 4,126 (3,123) 7 / 10 s; 12,861 (8,970) 33 / 60 s; 26,220 (16,239) 107 /
+# 234 s, tracked points within 6e-5 mm; 105,004 (59,436) 1.26 / 5.37 s per step in contact.
+# The threshold sits between the levels so that none is near it: it was 60,000 once, and the
+# 105k level's 59,436 unknowns fell under it by 1 %.
+_KEEP_FACTORIZATION_UNKNOWNS = 2_500
 # A kept factorisation is refreshed after a contact response needing more rounds than this.
 _REFRESH_AFTER_ROUNDS = 2
 # Constraint columns solved for together (memory: dofs x this doubles).
