@@ -26,7 +26,7 @@ at 0.2 mm per step, settled long enough, reaches the latter too (within 0.08 mm)
 costs about 1.3 x the time of 2 mm.
 
 On the published scene's real poses, which tilt the probe as well as press, it does not:
-lesion 1 on the scene's own mesh (9,295 tets), robust LM driven dynamically is 0.011 / 2.99 /
+lesion 1 on the scene's own mesh (9,295 tets), robust LM driven dynamically is 0.012 / 2.99 /
 3.26 / 7.51 mm from the quasi-static solution at the four poses (forces 1.088 / 2.232 / 2.676
 / 3.650 N against 1.087 / 2.614 / 3.102 / 1.772 N), with the quasi-static one converged in
 its increments (1, 0.5 and 0.25 mm agree to 1e-6 m). Both are equilibria; the cells follow
