@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import platform
+import subprocess
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -80,7 +83,34 @@ def run_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
         "wall_s": time.perf_counter() - started,
         "host": platform.node(),
         "pid": os.getpid(),
+        "revision": source_revision(),
     }
+
+
+@functools.cache
+def source_revision() -> str | None:
+    """The git commit the code ran from (``+dirty`` with uncommitted changes), or None
+    outside a checkout: a study resumed across sessions can then tell which cells ran on
+    which code."""
+    root = Path(__file__).resolve().parents[2]
+    try:
+        head = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "--short=12", "HEAD"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return head + ("+dirty" if dirty else "") if head else None
 
 
 def summarise_times(step_ms: np.ndarray) -> dict[str, float | int]:

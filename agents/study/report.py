@@ -22,7 +22,7 @@ import html
 import json
 import os
 import platform
-from collections import defaultdict
+from collections import Counter, defaultdict
 from pathlib import Path
 from typing import Any
 
@@ -353,6 +353,17 @@ def write_report(
     _write_markdown_and_html(out, spec, records, references, stability, rows)
 
 
+def _provenance(records: list[dict[str, Any]]) -> str:
+    """Which hosts and code revisions the cells ran on, with counts: a study resumed over
+    several sessions (or machines) says so."""
+
+    def counted(field: str) -> str:
+        counts = Counter(str(r.get(field) or "unknown") for r in records)
+        return ", ".join(f"{name} ({n})" for name, n in sorted(counts.items()))
+
+    return f"Cells ran on hosts {counted('host')}; code revisions {counted('revision')}."
+
+
 def _path_words(spec: StudySpec) -> str:
     """How the probe moves in this study's scene, in words for the report."""
     if spec.scene == "synthetic":
@@ -394,6 +405,8 @@ def _write_markdown_and_html(
         "```json",
         json.dumps(_machine(), indent=1),
         "```",
+        "",
+        _provenance(records),
         "",
         "## Stability (paper Table 1)",
         "",
