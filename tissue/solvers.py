@@ -912,7 +912,7 @@ class LinearSolver:
         self._reuse: Factorization | None = None
         self.last_factorization: Factorization | None = None
         # Kept factorisations in single precision (see DirectFactorizer.factorize_preconditioner);
-        # a user of tight reuse solves (Lagrange-multiplier contact) turns this off.
+        # False keeps them in double (twice the memory and time per triangular solve).
         self.single_precision_preconditioner = True
         # (indices, indptr) of the last pattern CG saw, and its node blocks (or None).
         self._blocks: tuple[NDArray, NDArray, _NodeBlocks | None] | None = None
