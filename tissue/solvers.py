@@ -514,6 +514,18 @@ class ConstrainedSystem:
         other._full_times_values = np.zeros_like(rhs)
         return other
 
+    def with_load(self, load: NDArray[np.float64]) -> ConstrainedSystem:
+        """The same system with ``load`` added to its right-hand side at the free dofs and
+        the known dofs kept at their values, shape (n,)."""
+        other = object.__new__(ConstrainedSystem)
+        other.matrix = self.matrix
+        other.constrained = self.constrained
+        other.values = self.values
+        other.original_rhs = self.original_rhs + load
+        other.rhs = np.where(self.constrained, self.rhs, self.rhs + load)
+        other._full_times_values = self._full_times_values
+        return other
+
     def residual_norm(self, x: NDArray[np.float64]) -> float:
         """||b - A x|| / ||b|| of the eliminated system."""
         ax = np.empty_like(x)

@@ -34,7 +34,10 @@ Newton iterations and steps instead:
   point costs three solves the first time it is seen under F, nothing afterwards);
 - the response is iterated to the exact W: lambda' = LCP(W~, gaps(lambda) - W~ lambda), the
   gaps evaluated with A; with F = A one round is exact, and F is refreshed when a few
-  rounds do not bring the gaps within the contact tolerance of the prediction.
+  rounds do not bring the gaps within the contact tolerance of the prediction;
+- the iteration starts from the last iterate's (or step's) forces, applied as a load in the
+  free solve, so W~'s error acts only on their change: at 26,220 tets (apex press, 42
+  steps) 1.5 rounds per Newton iteration instead of 2.1, and 3 factorisations instead of 14.
 
 On smaller systems refactorising every iteration costs the same or less (see the
 constant's comment).
@@ -374,24 +377,29 @@ class LagrangeContact(FEContactModel):
         contacts: Contacts,
         fresh: bool,
         tolerance: float,
+        start: NDArray[np.float64],
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
         """As :meth:`_exact_response` (quasi-static scale 1) with a kept factorisation F of
-        an older matrix than ``system``'s A.
+        an older matrix than ``system``'s A, starting from forces already applied.
 
-        A^-1 is applied by ``reuse`` solves (CG preconditioned by F, to ``tolerance``);
-        W~ = H F^-1 H^T comes from the compliance cache. Each round solves the LCP with W~
-        about the exact gaps of the current forces, lambda' = LCP(W~, gaps(lambda) -
-        W~ lambda), whose fixed point is the exact solution; with F = A (``fresh``) the first
-        round is exact. It stops once the exact gaps of the new forces are within the
+        ``offset`` are the exact gaps with the forces ``start`` [N] already acting (the free
+        step was solved with them as a load); the returned correction is the response to the
+        change of the forces only. A^-1 is applied by ``reuse`` solves (CG preconditioned by
+        F, to ``tolerance``); W~ = H F^-1 H^T comes from the compliance cache. Each round
+        solves the LCP with W~ about the exact gaps of the current forces, lambda' =
+        LCP(W~, gaps(lambda) - W~ lambda), whose fixed point is the exact solution; with
+        F = A (``fresh``) the first round is exact. Its prediction misses the exact gaps by
+        (W - W~)(lambda' - lambda): starting from the forces of the last iterate (or step)
+        keeps that small. It stops once the exact gaps of the new forces are within the
         contact tolerance (:attr:`gap_tolerance_m`) of W~'s prediction; if they are not after
         ``max_response_iterations`` rounds, F is refactorised and one more (exact) round is
         taken.
         """
         solver = self.sim.integrator.solver
-        forces = np.zeros(contacts.count)
+        forces = start.copy()
         correction = np.zeros(rows.shape[1])
         gaps = offset.copy()
-        guess = self._warm[contacts.points].copy()
+        guess = start.copy()
         sweeps_total, rounds = 0, 0
         converged = False
         limit = self.params.max_response_iterations
@@ -408,11 +416,14 @@ class LagrangeContact(FEContactModel):
             new, sweeps = self._lcp(compliance, gaps - compliance @ forces, guess)
             sweeps_total += sweeps
             predicted = gaps + compliance @ (new - forces)
-            forces, guess = new, new
-            correction, report = solver.solve(
-                system.with_rhs(rows.T @ forces), tolerance=tolerance, kind=LinearSolverKind.REUSE
+            increment, report = solver.solve(
+                system.with_rhs(rows.T @ (new - forces)),
+                tolerance=tolerance,
+                kind=LinearSolverKind.REUSE,
             )
-            gaps = offset + rows @ correction
+            correction += increment
+            gaps = gaps + rows @ increment
+            forces, guess = new, new
             mismatch = float(np.max(np.abs(gaps - predicted), initial=0.0))
             converged = fresh or mismatch <= self.gap_tolerance_m
             fresh = fresh or report.factorized
@@ -519,11 +530,17 @@ class LagrangeContact(FEContactModel):
             # W~ miss the exact compliance every step (105k tets: 3 response rounds and two
             # refactorisations a step, 10-12 s instead of ~1 s).
             project = keep or (bool(cfg.project_psd) and residual > PROJECTION_SWITCH)
+            if iterations > 1 and contacts.count:
+                self._warm[contacts.points] = forces  # total forces of the last iterate
+            start_forces = self._warm[contacts.points]
             try:
                 system = potential.hessian_system(y, -gradient, project=project)
                 if keep:
+                    # The free step carries the last forces as a load, so that the response
+                    # (whose compliance W~ is approximate) only has to find their change.
+                    loaded = system.with_load(rows.T @ start_forces) if contacts.count else system
                     free_step, report = integrator.solver.solve(
-                        system, tolerance=tolerance, kind=LinearSolverKind.REUSE
+                        loaded, tolerance=tolerance, kind=LinearSolverKind.REUSE
                     )
                     fresh = report.factorized
                 else:
@@ -538,11 +555,9 @@ class LagrangeContact(FEContactModel):
                 break
             if contacts.count:
                 offset = contacts.distance + rows @ free_step - self.params.contact_distance_m
-                if iterations > 1:
-                    self._warm[contacts.points] = forces  # total forces of the last iterate
                 if keep:
                     forces, correction, response = self._kept_response(
-                        system, rows, offset, contacts, fresh, tolerance
+                        system, rows, offset, contacts, fresh, tolerance, start_forces
                     )
                 else:
                     forces, correction, response = self._exact_response(
