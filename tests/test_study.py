@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -101,6 +102,23 @@ def test_rerun_skips_finished_cells_and_reuses_the_reference(tiny_study) -> None
     again = run_study(TINY, out, progress=False, log=_quiet)
     assert again.ran_now == 0 and again.skipped == 8 and again.references_computed == 0
     assert len(read_results(out / RESULTS_FILE)) == 8
+
+
+def test_study_directory_carries_its_references_to_a_fresh_cache(
+    tiny_study, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    out, _ = tiny_study
+    moved = tmp_path / "moved"
+    shutil.copytree(out, moved)
+    assert len(list((moved / "references").glob("reference-*.json"))) == 1
+    lines = (moved / RESULTS_FILE).read_text().splitlines()
+    (moved / RESULTS_FILE).write_text("\n".join(lines[:-1]) + "\n")  # one cell to rerun
+    monkeypatch.setenv("PROBEGYM_CACHE_DIR", str(tmp_path / "fresh-cache"))
+    again = run_study(TINY, moved, progress=False, log=_quiet)
+    assert again.ran_now == 1 and again.references_computed == 0
+    rerun = read_results(moved / RESULTS_FILE)[-1]
+    assert rerun["truth"] == "reference" and all(e is not None for e in rerun["errors_m"])
+    assert not (tmp_path / "fresh-cache" / "references").exists()
 
 
 def test_killed_study_resumes_without_redoing_cells(tmp_path: Path) -> None:

@@ -135,14 +135,20 @@ def load_or_compute_reference(
     if path.exists():
         return json.loads(path.read_text()), False
     record = compute_reference(spec, scene, lesion)
-    if (record["instability"] or {}).get("kind") == "timeout":
-        return record, True  # the machine's load, not the physics: not cached
+    if not keepable(record):
+        return record, True
     path.parent.mkdir(parents=True, exist_ok=True)
     handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
     with os.fdopen(handle, "w") as file:
         json.dump(record, file)
     os.replace(temporary, path)  # atomic: a concurrent reader never sees half a file
     return record, True
+
+
+def keepable(record: dict[str, Any]) -> bool:
+    """Whether a reference may be cached and reused: not one a step time-out cut short
+    (the machine's load, not the physics)."""
+    return (record["instability"] or {}).get("kind") != "timeout"
 
 
 def compute_reference(spec: StudySpec, scene: StudyScene, lesion: int) -> dict[str, Any]:

@@ -7,7 +7,9 @@ killed study loses at most the cells (and the reference) in flight. The referenc
 the same queue as the cells, before the cells on the reference level: a cell finishing
 before its lesion's reference is appended with ``"truth": "pending"`` and its errors are
 filled in, the file rewritten atomically, once the references are known (so a reference
-recomputed by a new version rescores every record too). ``study.json`` records the
+recomputed by a new version rescores every record too). Each reference is also kept in
+``references/`` of the output directory, under its cache key, so a study moved to another
+machine (or a fresh cache) resumes without recomputing them. ``study.json`` records the
 specification; rerunning with different physics (scene, depths, speed, reference) into the
 same directory is refused. Timing: with ``workers`` > 1 the cells share the machine's
 cores, so their per-step times are comparable within the run but slower than a one-worker
@@ -27,7 +29,12 @@ from typing import Any
 import numpy as np
 
 from agents.study.cell import run_cell, scene_for
-from agents.study.reference import load_or_compute_reference, read_measured_csv, reference_path
+from agents.study.reference import (
+    keepable,
+    load_or_compute_reference,
+    read_measured_csv,
+    reference_path,
+)
 from agents.study.scenes import StudyScene
 from agents.study.spec import StudySpec, level_label
 from tissue.errors import ConfigError
@@ -37,6 +44,10 @@ from tissue.probe import parse_probe_spec
 RESULTS_FILE = "results.jsonl"
 SPEC_FILE = "study.json"
 REFERENCES_FILE = "references.json"
+# Each reference's own cache file is also kept here in the study directory, so that the
+# study resumes elsewhere (another machine, a fresh cache) without recomputing them: on the
+# finest level they take the longest of any task.
+CARRIED_REFERENCES_DIR = "references"
 # Settings that change the physics of a cell: a rerun must keep them.
 _PHYSICS_KEYS = (
     "scene",
@@ -181,7 +192,7 @@ def run_study(
         _check_depths_reachable(spec, scene, lesions, coarsest)
 
     with _executor(workers, ray_address) as submit:
-        references, waiting = _cached_references(spec, scene, lesions, measured, log)
+        references, waiting = _cached_references(spec, scene, lesions, measured, log, out)
         # Uncached references run as tasks in the cells' queue, just before the first cell on
         # the reference level: a reference on the finest level takes tens of minutes, and the
         # coarse levels' cells (seconds to minutes each) need not wait for it. A cell that
@@ -206,6 +217,8 @@ def run_study(
                 record, fresh = result
                 references[item] = record
                 computed += int(fresh)
+                if keepable(record):
+                    _carry_reference(out, reference_path(spec, scene, item), record)
                 _log_reference(spec, item, record, fresh, log)
                 bar.set_postfix_str(f"reference lesion {item}")
                 continue
@@ -288,20 +301,39 @@ def _cached_references(
     lesions: tuple[int, ...],
     measured: dict[int, dict[int, list[float]]] | None,
     log: Callable[[str], None],
+    out: Path,
 ) -> tuple[dict[int, dict[str, Any]], list[int]]:
-    """The references already on disk, and the lesions whose reference must be computed."""
+    """The references already on disk (in the cache, or carried in the study directory
+    ``out``), and the lesions whose reference must be computed."""
     if measured is not None:
         log("truth: measured positions from --measured; no reference computed")
         return {}, []
     references, waiting = {}, []
     for lesion in lesions:
         path = reference_path(spec, scene, lesion)
+        carried = out / CARRIED_REFERENCES_DIR / path.name
         if path.exists():
             references[lesion] = json.loads(path.read_text())
-            _log_reference(spec, lesion, references[lesion], False, log)
+            _carry_reference(out, path, references[lesion])
+        elif carried.exists():
+            references[lesion] = json.loads(carried.read_text())
         else:
             waiting.append(lesion)
+            continue
+        _log_reference(spec, lesion, references[lesion], False, log)
     return references, waiting
+
+
+def _carry_reference(out: Path, cached: Path, record: dict[str, Any]) -> None:
+    """Keep a copy of a reference (named as its cache file, by its key) in ``out``."""
+    carried = out / CARRIED_REFERENCES_DIR / cached.name
+    if carried.exists():
+        return
+    carried.parent.mkdir(exist_ok=True)
+    handle, temporary = tempfile.mkstemp(dir=carried.parent, suffix=".tmp")
+    with os.fdopen(handle, "w") as file:
+        json.dump(record, file)
+    os.replace(temporary, carried)
 
 
 def _log_reference(
