@@ -119,3 +119,23 @@ def test_cg_on_node_blocks_matches_the_dense_reference() -> None:
         np.testing.assert_allclose(x, expected, rtol=1e-8, atol=1e-8)
         assert report.converged
     assert found[0] is found[1]
+
+
+def test_kept_factorization_is_corrected_for_dofs_constrained_since() -> None:
+    """A reuse solve after more dofs became constrained (prescribed displacement's online
+    node set growing) converges as if the factorisation were fresh: the capacitance
+    correction makes the kept factor the exact inverse on the remaining free dofs."""
+    rng = np.random.default_rng(3)
+    matrix = _laplacian_3d(7, 0.05)
+    n = matrix.shape[0]
+    before = rng.random(n) < 0.05
+    later = before | (rng.random(n) < 0.05)
+    assert 10 < np.count_nonzero(later & ~before) < 40
+    values = rng.standard_normal(n)
+    solver = LinearSolver(LinearSolverConfig(kind="reuse"))
+    solver.single_precision_preconditioner = False  # an exact kept factor, to test exactly
+    solver.solve(ConstrainedSystem(matrix.copy(), rng.standard_normal(n), before, values))
+    rhs = rng.standard_normal(n)
+    x, report = solver.solve(ConstrainedSystem(matrix.copy(), rhs, later, values), tolerance=1e-10)
+    np.testing.assert_allclose(x, _reference(matrix, rhs, later, values), rtol=1e-8, atol=1e-8)
+    assert report.converged and not report.factorized and report.iterations <= 2
