@@ -90,24 +90,25 @@ def run_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
 @functools.cache
 def source_revision() -> str | None:
     """The git commit the code ran from (``+dirty`` with uncommitted changes), or None
-    outside a checkout: a study resumed across sessions can then tell which cells ran on
-    which code."""
+    outside a checkout of this project: a study resumed across sessions can then tell which
+    cells ran on which code."""
     root = Path(__file__).resolve().parents[2]
+
+    def git(*args: str) -> str:
+        return subprocess.run(
+            ["git", "-C", str(root), *args],
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        ).stdout.strip()
+
     try:
-        head = subprocess.run(
-            ["git", "-C", str(root), "rev-parse", "--short=12", "HEAD"],
-            capture_output=True,
-            text=True,
-            timeout=10,
-            check=True,
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-            capture_output=True,
-            text=True,
-            timeout=10,
-            check=True,
-        ).stdout.strip()
+        # An installed copy inside some other repository must not report that one's commit.
+        if Path(git("rev-parse", "--show-toplevel")).resolve() != root:
+            return None
+        head = git("rev-parse", "--short=12", "HEAD")
+        dirty = git("status", "--porcelain", "--untracked-files=no")
     except (OSError, subprocess.SubprocessError):
         return None
     return head + ("+dirty" if dirty else "") if head else None
