@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.study.report import pareto_front, valid_errors
+from agents.study.report import pareto_front, stability_table, valid_errors
 from agents.study.runner import RESULTS_FILE, read_results, run_study
 from agents.study.spec import Cell, StudyConfig, StudySpec
 from tissue.contact.base import ContactMethod
@@ -239,6 +239,16 @@ def test_valid_errors_keep_only_depths_every_method_reached() -> None:
         ("lm", 623): [1.0], ("penalty", 623): [1.5], ("prescribed", 623): [2.0]
     }  # fmt: skip
     assert valid_errors(records[:1], ["paper"])["paper"] == {("lm", 623): [1.0, 2.0, 3.0]}
+
+
+def test_stability_table_marks_cells_with_fewer_lesions() -> None:
+    def record(method: str, lesion: int, percent: float) -> dict:
+        return {"config": "robust", "method": method, "level": 623, "tets": 571,
+                "lesion": lesion, "stability_percent": percent}  # fmt: skip
+
+    records = [record("lm", 1, 100.0), record("lm", 2, 50.0), record("pbd", 1, 80.0)]
+    row = stability_table(records, ["robust"]).splitlines()[-1]
+    assert row == "| 623 | 571 | 75 | 75 | 50-100 | 80 | 80 | 80-80 (n=1) |"
 
 
 def test_pareto_front_marks_undominated_points() -> None:

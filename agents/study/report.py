@@ -71,6 +71,8 @@ def stability_table(records: list[dict[str, Any]], configs: list[str]) -> str:
         for method in methods:
             head += [f"{config} {METHOD_LABEL[method]} mean", "median", "range"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    # A study still running (or restricted) has fewer lesions in some cells: those say so.
+    lesion_count = len({r["lesion"] for r in records})
     for level in _levels(records):
         row = [level_label(level), f"{_tets(records, level):,}"]
         for config in configs:
@@ -81,10 +83,11 @@ def stability_table(records: list[dict[str, Any]], configs: list[str]) -> str:
                     if r["level"] == level and r["method"] == method
                 ]
                 if values:
+                    fewer = f" (n={len(values)})" if len(values) < lesion_count else ""
                     row += [
                         f"{np.mean(values):.0f}",
                         f"{np.median(values):.0f}",
-                        f"{np.min(values):.0f}-{np.max(values):.0f}",
+                        f"{np.min(values):.0f}-{np.max(values):.0f}{fewer}",
                     ]
                 else:
                     row += ["", "", ""]
