@@ -41,6 +41,7 @@ from typing import Any, Protocol
 
 import numba
 import numpy as np
+import scipy.linalg
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
@@ -1134,8 +1135,6 @@ class _ConstrainedSince:
                 self.slot[dof] = self.columns.shape[1] + index
             self.columns = np.hstack([self.columns, solved])
         if self._active is None or not np.array_equal(self._active, dofs):
-            import scipy.linalg
-
             use = np.ascontiguousarray(self.columns[:, [self.slot[int(d)] for d in dofs]])
             capacitance = use[dofs, :]
             self._active = dofs.copy()
@@ -1144,8 +1143,6 @@ class _ConstrainedSince:
         return self
 
     def solve(self, rhs: NDArray[np.float64]) -> NDArray[np.float64]:
-        import scipy.linalg
-
         assert self._active is not None
         z = np.array(self.base.solve(rhs), dtype=np.float64).reshape(-1)
         _subtract_product(z, self._use, scipy.linalg.cho_solve(self._factor, z[self._active]))
