@@ -187,6 +187,76 @@ def test_normals_are_the_unit_gradient_and_project_onto_the_surface(shape):
     np.testing.assert_allclose(projected, 0.0, atol=1e-12)
 
 
+def test_distance_hessian_of_a_sphere_is_its_curvature_seen_from_the_point():
+    """For |p| - R the Hessian is (I - p p^T / |p|^2) / |p|: 1 / (R + d) across, 0 along n."""
+    sphere = SphereProbe(0.01)
+    rng = np.random.default_rng(3)
+    directions = rng.normal(size=(200, 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    offset = directions * rng.uniform(0.0101, 0.013, 200)[:, None]  # from the centre
+    points = offset - [0.0, 0.01, 0.0]  # the centre sits one radius behind the face (y = -R)
+    length = np.linalg.norm(offset, axis=1)
+    unit = offset / length[:, None]
+    expected = (np.eye(3) - unit[:, :, None] * unit[:, None, :]) / length[:, None, None]
+    np.testing.assert_allclose(sphere.distance_hessian(points), expected, atol=1e-4 / 0.01)
+
+
+@pytest.mark.parametrize("shape", analytic_shapes(), ids=lambda s: s.name)
+def test_distance_hessian_is_symmetric_flat_along_the_normal_and_convex(shape):
+    """Near any analytic shape (all convex): symmetric, H n = 0, eigenvalues between 0 and
+    the largest curvature 1 / (smallest radius + d); 0 in front of a flat face."""
+    points = random_points(shape, 2000, seed=9)
+    distance, normal = shape.signed_distance(points)
+    near = (distance > 1e-4) & (distance < 3e-3)
+    assert near.sum() > 20
+    hessian = shape.distance_hessian(points[near])
+    np.testing.assert_allclose(hessian, hessian.transpose(0, 2, 1), atol=1e-9)
+    # [1/m]; curvatures here reach 1 / d = 1e4 (a box's sharp edge seen from 0.1 mm)
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", hessian, normal[near]), 0.0, atol=1.0)
+    eigenvalues = np.linalg.eigvalsh(hessian)
+    assert eigenvalues.min() > -1.0
+    # A convex shape's rim of radius r >= 0 seen from d curves by 1 / (r + d) <= 1 / d.
+    assert np.all(eigenvalues.max(axis=1) <= 1.0 / distance[near] * (1 + 1e-3) + 1.0)
+    assert eigenvalues.max() > 10.0  # and some points do see a curved rim
+    in_front = shape.distance_hessian(np.array([[0.0, 2e-3, 0.0]]))
+    if not isinstance(shape, SphereProbe):  # every other shape has a flat face there
+        np.testing.assert_allclose(in_front, 0.0, atol=1e-3)
+
+
+def test_distance_hessian_of_the_face_rim_is_one_over_edge_radius_plus_distance():
+    """Beside the middle of the face's long side, level with the rounded edge's centre: the
+    edge curves across (in the y-z plane) with radius r + d, and not along x."""
+    face = LinearProbeFace(0.04, 0.01, 0.02, edge_radius_m=0.002, corner_radius_m=0.005)
+    d = 1e-3
+    # The long side at z = +w/2; the face edge's circle is centred at y = -r, z = w/2 - r.
+    angle = 0.5  # from the side (z) towards the face (y), within the edge's quarter circle
+    point = np.array(
+        [[0.0, -0.002 + (0.002 + d) * math.sin(angle), 0.008 + (0.002 + d) * math.cos(angle)]]
+    )
+    distance, normal = face.signed_distance(point)
+    assert distance[0] == pytest.approx(d, abs=1e-9)
+    hessian = face.distance_hessian(point)[0]
+    across = np.array([0.0, math.cos(angle), -math.sin(angle)])  # tangent of the edge's circle
+    assert across @ hessian @ across == pytest.approx(1.0 / (0.002 + d), rel=1e-4)
+    assert hessian[0, 0] == pytest.approx(0.0, abs=1e-3)
+
+
+def test_mesh_probe_has_no_curvature_to_give():
+    box = trimesh.creation.box(extents=(0.03, 0.02, 0.01))
+    probe = MeshProbe(box.vertices, box.faces)
+    np.testing.assert_array_equal(probe.distance_hessian(np.ones((5, 3))), np.zeros((5, 3, 3)))
+
+
+def test_distance_hessian_world_is_the_shape_hessian_carried_by_the_pose():
+    face = LinearProbeFace()
+    probe = Probe(face, [0.1, 0.0, 0.05], [0.3, 0.2, -0.9, 0.1])
+    local = random_points(face, 300, seed=11)
+    world = probe.to_world_frame(local)
+    rotation = probe.rotation_world()
+    expected = rotation @ face.distance_hessian(local) @ rotation.T
+    np.testing.assert_allclose(probe.distance_hessian_world(world), expected, atol=1e-6)
+
+
 @pytest.mark.parametrize("shape", analytic_shapes(), ids=lambda s: s.name)
 def test_frame_convention_face_at_y0_body_behind(shape):
     distance, normal = shape.signed_distance(np.array([[0.0, 0.0, 0.0], [0.0, 1e-3, 0.0]]))

@@ -77,6 +77,11 @@ PROBE_SPEC_FORMS = (
 # Shapes
 
 
+# Central-difference step of :meth:`ProbeShape.distance_hessian` [m]: far below the smallest
+# radius of the built-in shapes (the face's 1 mm edge) and far above round-off in the normal.
+_HESSIAN_STEP_M = 1e-6
+
+
 class ProbeShape(abc.ABC):
     """Rigid probe geometry in the probe frame (see the module docstring for the frame).
 
@@ -104,6 +109,27 @@ class ProbeShape(abc.ABC):
                 (n, 3), the gradient of the distance: moving a penetrating point along it
                 by -distance puts it on the surface.
         """
+
+    def distance_hessian(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Hessian of the signed distance at ``points`` (probe frame) [1/m], shape (n, 3, 3).
+
+        It is the surface's curvature seen from the point: for a point at distance d from a
+        rounded edge of radius r, 1 / (r + d) across the edge and 0 along it; 0 over flat
+        faces. Contact strategies need it for the exact Newton tangent of a contact gap
+        (the force lambda along a normal that turns as the point slides adds the stiffness
+        -lambda times this). Central differences of :meth:`signed_distance`'s normal, whose
+        step (:data:`_HESSIAN_STEP_M`) is far below any radius of the built-in shapes;
+        shapes whose distance is not smooth override it.
+        """
+        points = _as_points(points)
+        hessian = np.empty((points.shape[0], 3, 3))
+        for axis in range(3):
+            offset = np.zeros(3)
+            offset[axis] = _HESSIAN_STEP_M
+            _, ahead = self.signed_distance(points + offset)
+            _, behind = self.signed_distance(points - offset)
+            hessian[:, :, axis] = (ahead - behind) / (2.0 * _HESSIAN_STEP_M)
+        return 0.5 * (hessian + hessian.transpose(0, 2, 1))
 
     @abc.abstractmethod
     def surface(self) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
@@ -675,6 +701,12 @@ class MeshProbe(ProbeShape):
             )
         return distance, normal
 
+    def distance_hessian(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Zeros, shape (n, 3, 3): the normal is the nearest triangle's, constant over a face
+        and jumping at edges, so a triangle mesh has no curvature to give (a contact on one
+        of its edges converges linearly in Newton, as any contact did before curvature)."""
+        return np.zeros((_as_points(points).shape[0], 3, 3))
+
     def surface(self) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         return self.vertices, self.triangles
 
@@ -930,6 +962,12 @@ class Probe:
         """
         distance, normal = self.shape.signed_distance(self.to_probe_frame(points_world))
         return distance, normal @ self._rotation.T
+
+    def distance_hessian_world(self, points_world: ArrayLike) -> NDArray[np.float64]:
+        """Hessian of the signed distance [1/m] at points in the world [m], shape (n, 3, 3),
+        in the world frame (see :meth:`ProbeShape.distance_hessian`)."""
+        local = self.shape.distance_hessian(self.to_probe_frame(points_world))
+        return self._rotation @ local @ self._rotation.T
 
     def pressing_direction_world(self) -> NDArray[np.float64]:
         """The probe's +y axis in the world, shape (3,): the direction it presses."""
