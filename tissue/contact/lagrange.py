@@ -75,11 +75,10 @@ from tissue.status import StepStatus
 # The threshold sits between the levels so that none is near it: it was 60,000 once, and the
 # 105k level's 59,436 unknowns fell under it by 1 %.
 _KEEP_FACTORIZATION_UNKNOWNS = 2_500
-# With a kept factorisation, robust Newton keeps the projected (PSD) tangent for this many
-# iterations of a step, then takes the exact one (with the contact terms below): alternating
-# tangents costs the kept factorisation its match (response rounds, refactorisations), so a
-# step that converges within them, as the dynamic steps of a press do, never alternates,
-# while one that would crawl on the projected tangent does not. Measured on the 26,220-tet
+# With a kept factorisation, quasi-static robust Newton keeps the projected (PSD) tangent for
+# this many iterations of a step, then takes the exact one with the contact terms: a change
+# of tangent costs a refactorisation (the kept F must be of the tangent W~ is built from),
+# which a step converging within them never pays. Measured on the 26,220-tet
 # quasi-static reference (lesion 2, 30 mm): the projected tangent contracted the residual by
 # 0.5-0.94 per iteration (14-60 iterations a 1 mm step, failing at 31 mm even at 62 um
 # increments); the exact one with the contact terms converges quadratically (5 iterations).
@@ -628,14 +627,22 @@ class LagrangeContact(FEContactModel):
             # last KKT residual, as the integrator's own Newton does.
             tolerance = min(1e-2, max(0.1 * residual, 1e-10))
             # As the integrator: projected (PSD) element tangents far from the solution, the
-            # exact tangent near it (projection costs quadratic convergence) completed with
-            # the contact terms, the projected one again where that is not definite (W = H
-            # A^-1 H^T must be positive for PGS). With a kept factorisation, projected for the
-            # first iterations of a step (see _KEPT_PROJECTED_ITERATIONS).
+            # exact tangent near it (projection costs quadratic convergence), the projected
+            # one again where that is not definite (W = H A^-1 H^T must be positive for PGS).
+            # Quasi-static steps complete the exact tangent with the contact terms and, with a
+            # kept factorisation, take it after _KEPT_PROJECTED_ITERATIONS: with no inertia the
+            # projected tangent crawls (the study's 26,220-tet reference stalled). Dynamic
+            # steps do not: the inertia m / h^2 keeps the projected tangent close to the exact
+            # one (a press's steps converge in a few iterations), and the exact tangent's full
+            # step can leave the step's own solution for another -- on the published scene's
+            # lesion 1, pose 4 (tilted; the tissue creeps sideways under the frictionless
+            # probe) the dynamic reference with it ended on the slid equilibrium, 1.78 N and
+            # the lesion 7.5 mm away, where the cells and the reference without it hold 3.65 N.
+            contact_terms = bool(cfg.quasi_static)
             project = (
                 not exact_trusted
                 or (bool(cfg.project_psd) and residual > PROJECTION_SWITCH)
-                or (keep and iterations <= _KEPT_PROJECTED_ITERATIONS)
+                or (keep and (not contact_terms or iterations <= _KEPT_PROJECTED_ITERATIONS))
             )
             if iterations > 1 and contacts.count:
                 self._warm[contacts.points] = forces  # total forces of the last iterate
@@ -643,14 +650,15 @@ class LagrangeContact(FEContactModel):
             try:
                 # The exact tangent with the contact terms, its augmentation raised if that is
                 # not definite, then the projected tangent (see _AUGMENTATION_STIFFNESS).
-                tangents = [None] if project else [*_AUGMENTATION_STIFFNESS, None]
+                stiffnesses = _AUGMENTATION_STIFFNESS if contact_terms else (0.0,)
+                tangents = [None] if project else [*stiffnesses, None]
                 for attempt, stiffness in enumerate(tangents):
                     project = stiffness is None
                     if project and attempt:
                         exact_trusted = False  # not definite: projected for the rest of the step
                     system = potential.hessian_system(y, -gradient, project=project)
                     augmented = None
-                    if stiffness is not None and contacts.count:
+                    if stiffness and contacts.count:  # 0.0: the exact tangent without them
                         augmented = self._add_contact_tangent(
                             system, contacts, start_forces, stiffness
                         )
@@ -716,7 +724,7 @@ class LagrangeContact(FEContactModel):
             if not np.isfinite(residual):
                 status = StepStatus.DIVERGED
                 break
-            if not project and residual >= before[7]:
+            if not project and contact_terms and residual >= before[7]:
                 # Near a bifurcation of a deep press (the tissue could slide either way under
                 # the frictionless probe) the exact tangent is nearly singular and its full
                 # step can jump millimetres (measured: 9.6 mm for a 1 mm press); an exact
