@@ -78,7 +78,8 @@ PROBE_SPEC_FORMS = (
 
 
 # Central-difference step of :meth:`ProbeShape.distance_hessian` [m]: far below the smallest
-# radius of the built-in shapes (the face's 1 mm edge) and far above round-off in the normal.
+# radius of the built-in shapes (the face's 1.35 mm edge) and far above round-off in the
+# normal.
 _HESSIAN_STEP_M = 1e-6
 
 

@@ -18,7 +18,10 @@
 ``robust`` mode solves the same Signorini problem on the nonlinear incremental potential:
 each iteration linearises the potential (Newton) and the gaps (contact normals re-detected
 at the iterate), solves that linear complementarity problem as above, and repeats until the
-KKT residual (force balance on the free dofs) is below the Newton tolerance.
+KKT residual (force balance on the free dofs) is below the Newton tolerance. Quasi-static
+steps complete the exact tangent near the solution with the contact's own terms (the
+probe's curvature and an augmented-Lagrangian term, :meth:`LagrangeContact._add_contact_tangent`),
+so that Newton converges quadratically where the probe's rounded rim presses.
 
 ``paper`` mode factorises A every step, as the paper did. W is built from batches of
 columns A^-1 H^T, never all held at once (thousands of constraints on a fine mesh would
@@ -654,7 +657,7 @@ class LagrangeContact(FEContactModel):
                 tangents = [None] if project else [*stiffnesses, None]
                 for attempt, stiffness in enumerate(tangents):
                     project = stiffness is None
-                    if project and attempt:
+                    if project and attempt and contact_terms:
                         exact_trusted = False  # not definite: projected for the rest of the step
                     system = potential.hessian_system(y, -gradient, project=project)
                     augmented = None
