@@ -931,6 +931,8 @@ class LinearSolver:
         # Kept factorisations in single precision (see DirectFactorizer.factorize_preconditioner);
         # False keeps them in double (twice the memory and time per triangular solve).
         self.single_precision_preconditioner = True
+        # Whether the last refresh_kept_factorization found its matrix not SPD.
+        self.kept_indefinite = False
         # (indices, indptr) of the last pattern CG saw, and its node blocks (or None).
         self._blocks: tuple[NDArray, NDArray, _NodeBlocks | None] | None = None
 
@@ -980,10 +982,12 @@ class LinearSolver:
         return self._reuse
 
     def refresh_kept_factorization(self, system: ConstrainedSystem) -> Factorization:
-        """Refactorise ``system``'s matrix now and keep it for later ``reuse`` solves."""
+        """Refactorise ``system``'s matrix now and keep it for later ``reuse`` solves
+        (:attr:`kept_indefinite` says whether the matrix was not SPD)."""
         preconditioner = self.factorizer.factorize_preconditioner(
             system.matrix, self.single_precision_preconditioner
         )
+        self.kept_indefinite = preconditioner is None
         if preconditioner is None:  # not SPD: an exact (indefinite) factorisation
             preconditioner, _ = self.factorize(system)
         self._keep(preconditioner, system.constrained)
