@@ -91,10 +91,11 @@ def test_robust_lagrange_converges_quadratically_under_a_curved_probe(
 ) -> None:
     """Near the solution robust LM takes the exact tangent with the probe's curvature
     (-lambda d2g/dx2) and an augmented-Lagrangian term, so Newton converges quadratically.
-    Without the curvature term a sphere pressed 1-6 mm into a near-incompressible block
-    took 6-15 Newton iterations a step refactorising and 7-19 keeping a factorisation (the
-    26,220-tet reference of the study stalled outright at 31 mm); with it, 3-4 and 7-8 (six
-    of those on the projected tangent, see _KEPT_PROJECTED_ITERATIONS)."""
+    Before (65d04f1: the exact tangent without the contact terms when refactorising, the
+    projected one throughout with a kept factorisation) a sphere pressed 1-6 mm into a
+    near-incompressible block took 6-15 Newton iterations a step refactorising and 7-19
+    keeping a factorisation (the study's 26,220-tet reference stalled outright at 31 mm);
+    now 3-4 and 7-8 (six of those on the projected tangent, _KEPT_PROJECTED_ITERATIONS)."""
     import tissue.contact.lagrange as lagrange
 
     shape = SphereProbe(0.01)
