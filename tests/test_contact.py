@@ -118,6 +118,30 @@ def test_robust_lagrange_converges_quadratically_under_a_curved_probe(
     np.testing.assert_allclose(forces[0], forces[10**9], rtol=1e-5)
 
 
+@pytest.mark.parametrize(("quasi", "depth_m", "steps"), [(False, 0.011, 10), (True, 0.009, 9)])
+def test_robust_lagrange_never_steps_past_an_inversion(
+    block, quasi: bool, depth_m: float, steps: int
+) -> None:
+    """A box pressed 9-11 mm into the 15 mm coarse block crushes the tets under its edges
+    towards J = 0. Robust mode's inversion barrier makes J <= 0 an infinite energy, but LM's
+    Newton takes full steps; before, a step jumped past J = 0 (where an inverted tet exerts
+    no force) and converged there: the last step ended ``inverted`` (min J -0.13 dynamic,
+    -0.09 quasi-static). Now a step that would invert a tet is shortened until none does."""
+    shape = BoxProbe((0.012, 0.004, 0.01))
+    materials = TissueMaterials(tissue=NeoHookean(E, 0.49 if not quasi else 0.45))
+    config = SimulationConfig(mode="robust", quasi_static=quasi)
+    model = make_contact_model("lm", block, shape, materials=materials, config=config)
+    probe = Probe.looking_along(shape, np.array([0.0, 0.0, SIZE / 2]), np.array([0.0, 0.0, -1.0]))
+    shortened = 0
+    for i in range(1, steps + 1):
+        result = model.step(probe.position_world - [0.0, 0.0, depth_m * i / steps], probe.quat_wxyz)
+        assert result.status is StepStatus.OK, (i, result.diagnostics)
+        assert result.diagnostics["min_volume_ratio"] > 0.0
+        shortened += result.diagnostics["shortened_steps"]
+    assert shortened >= 1  # the case does reach the barrier
+    assert result.force_world[2] > 0.0
+
+
 def test_robust_contact_moves_to_a_much_finer_volume_boundary() -> None:
     """A collision surface far coarser than the volume's boundary serves paper mode; robust
     mode acts on the boundary nodes instead (the cure for fine_105k's inversions)."""
