@@ -139,3 +139,44 @@ def test_kept_factorization_is_corrected_for_dofs_constrained_since() -> None:
     x, report = solver.solve(ConstrainedSystem(matrix.copy(), rhs, later, values), tolerance=1e-10)
     np.testing.assert_allclose(x, _reference(matrix, rhs, later, values), rtol=1e-8, atol=1e-8)
     assert report.converged and not report.factorized and report.iterations <= 2
+
+
+def test_reuse_refactorises_once_extra_cg_iterations_cost_a_factorisation() -> None:
+    """On a drifting matrix (a Newton run's tangents), ``reuse`` refactorises once the CG
+    iterations beyond one per solve add up to ``reuse_refresh_factor`` sqrt(n), before CG
+    stalls at its cap: fewer iterations in all than refreshing only on a stall, the same
+    solutions, and the same schedule on every run (counted in iterations, not wall time)."""
+    rng = np.random.default_rng(5)
+    matrix = _laplacian_3d(7, 0.05)
+    n = matrix.shape[0]
+    constrained = np.zeros(n, dtype=bool)
+    values = np.zeros(n)
+    # Each solve's matrix is scaled and shifted a little from the last one.
+    drifted = [(matrix * (1.0 + 0.03 * k) + 0.01 * k * sp.eye(n)).tocsr() for k in range(30)]
+    right_hand_sides = [rng.standard_normal(n) for _ in drifted]
+
+    def run(factor: float) -> tuple[list[int], list[bool], list[np.ndarray]]:
+        solver = LinearSolver(LinearSolverConfig(kind="reuse", reuse_refresh_factor=factor))
+        solver.single_precision_preconditioner = False
+        iterations, factorized, solutions = [], [], []
+        for a, rhs in zip(drifted, right_hand_sides, strict=True):
+            x, report = solver.solve(ConstrainedSystem(a, rhs, constrained, values), tolerance=1e-8)
+            assert report.converged
+            np.testing.assert_allclose(x, _reference(a, rhs, constrained, values), atol=1e-7)
+            iterations.append(report.iterations)
+            factorized.append(report.factorized)
+            solutions.append(x)
+        return iterations, factorized, solutions
+
+    on_stall, stall_factorized, _ = run(0.0)
+    amortised, refreshed, solutions = run(0.15)
+    cap = LinearSolverConfig().reuse_max_iterations
+    # Only stalls refactorise without the rule (each after a capped CG run); with it, the
+    # refreshes come earlier, after solves well under the cap.
+    assert sum(refreshed[1:]) >= 2
+    assert all(count <= cap for count in amortised)
+    assert sum(amortised) < sum(on_stall), (amortised, on_stall)
+    again, refreshed_again, solutions_again = run(0.15)
+    assert again == amortised and refreshed_again == refreshed
+    for first, second in zip(solutions, solutions_again, strict=True):
+        np.testing.assert_array_equal(first, second)

@@ -290,6 +290,9 @@ class LagrangeContact(FEContactModel):
         # The probe pose of the last step (a failed robust step is retried from it).
         self._pose_before: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
         self._compliance = _Compliance(self.surface)
+        # W~ is cached per kept factorisation and LM refreshes it by its own rules (response
+        # rounds, exact iterations): no refresh behind its back.
+        self.sim.integrator.solver.amortized_refresh = False
         # The kept factorisation is single precision, as the tissue's own Newton keeps it:
         # W~ and the CG preconditioner are approximations that the response rounds and the
         # CG correct to the exact A anyway. Measured (robust LM, apex press, loaded machine,
