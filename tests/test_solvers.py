@@ -168,7 +168,7 @@ def test_reuse_refactorises_once_extra_cg_iterations_cost_a_factorisation() -> N
             solutions.append(x)
         return iterations, factorized, solutions
 
-    on_stall, stall_factorized, _ = run(0.0)
+    on_stall, _, _ = run(0.0)
     amortised, refreshed, solutions = run(0.15)
     cap = LinearSolverConfig().reuse_max_iterations
     # Only stalls refactorise without the rule (each after a capped CG run); with it, the

@@ -967,9 +967,7 @@ class LinearSolver:
         self.last_factorization = None
 
     def _keep(
-        self,
-        factorization: Factorization | None,
-        constrained: NDArray[np.bool_] | None,
+        self, factorization: Factorization | None, constrained: NDArray[np.bool_] | None
     ) -> None:
         self._excess_iterations = 0
         self._reuse = factorization
