@@ -126,19 +126,23 @@ def test_robust_lagrange_never_steps_past_an_inversion(
     towards J = 0. Robust mode's inversion barrier makes J <= 0 an infinite energy, but LM's
     Newton takes full steps; before, a step jumped past J = 0 (where an inverted tet exerts
     no force) and converged there: the last step ended ``inverted`` (min J -0.13 dynamic,
-    -0.09 quasi-static). Now a step that would invert a tet is shortened until none does."""
+    -0.09 quasi-static). Now a step that would invert a tet is shortened until none does,
+    and a dynamic step whose inertial prediction x + h v inverts one starts from x."""
     shape = BoxProbe((0.012, 0.004, 0.01))
     materials = TissueMaterials(tissue=NeoHookean(E, 0.49 if not quasi else 0.45))
     config = SimulationConfig(mode="robust", quasi_static=quasi)
     model = make_contact_model("lm", block, shape, materials=materials, config=config)
     probe = Probe.looking_along(shape, np.array([0.0, 0.0, SIZE / 2]), np.array([0.0, 0.0, -1.0]))
-    shortened = 0
+    shortened, started_at_x = 0, 0
     for i in range(1, steps + 1):
         result = model.step(probe.position_world - [0.0, 0.0, depth_m * i / steps], probe.quat_wxyz)
         assert result.status is StepStatus.OK, (i, result.diagnostics)
         assert result.diagnostics["min_volume_ratio"] > 0.0
         shortened += result.diagnostics["shortened_steps"]
-    assert shortened >= 1  # the case does reach the barrier
+        started_at_x += result.diagnostics["started_at_x"]
+    # The case does reach the barrier, on both guards where the step is dynamic.
+    assert shortened >= 1
+    assert started_at_x >= (0 if quasi else 1)
     assert result.force_world[2] > 0.0
 
 

@@ -620,9 +620,12 @@ class LagrangeContact(FEContactModel):
         constrained = potential.constrained
         free = ~constrained
         energy, gradient, scale = potential.evaluate(y)
-        if not math.isfinite(energy):
-            # The inertial prediction x + h v inverts a tet: start from x instead.
-            y = x.reshape(-1).copy()
+        started_at_x = not math.isfinite(energy)
+        if started_at_x:
+            # The inertial prediction x + h v inverts a tet: start from x instead (the
+            # constrained dofs where the potential puts them).
+            predicted, y = y, x.reshape(-1).copy()
+            y[constrained] = predicted[constrained]
             energy, gradient, scale = potential.evaluate(y)
         forces = np.zeros(0)
         contacts = detect_contacts(
@@ -827,6 +830,7 @@ class LagrangeContact(FEContactModel):
             "exact_iterations": exact_iterations,
             "exact_rejected": rejected,
             "shortened_steps": shortened,
+            "started_at_x": started_at_x,
             "pgs_sweeps": sweeps_total,
             "kkt_residual": residual,
             "response_rounds": rounds,
