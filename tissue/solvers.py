@@ -949,10 +949,7 @@ class LinearSolver:
         # (indices, indptr) of the last pattern CG saw, and its node blocks (or None).
         self._blocks: tuple[NDArray, NDArray, _NodeBlocks | None] | None = None
         # Amortised refresh of the kept factorisation (``reuse``, see _solve_reuse): the CG
-        # iterations beyond the first of each solve since it was computed. Off for callers
-        # whose own data depend on the kept factor's identity (LM's compliance W~,
-        # :class:`tissue.contact.lagrange.LagrangeContact`).
-        self.amortized_refresh = True
+        # iterations beyond the first of each solve since it was computed.
         self._excess_iterations = 0
 
     @property
@@ -1093,7 +1090,7 @@ class LinearSolver:
         # add up to what a factorisation costs, refactorising now pays at worst twice the
         # best schedule. The cost is counted in iterations (deterministic, unlike wall time)
         # from the model of ``LinearSolverConfig.reuse_refresh_factor``.
-        if kept is not None and self.amortized_refresh and self.config.reuse_refresh_factor > 0:
+        if kept is not None and self.config.reuse_refresh_factor > 0:
             free = system.rhs.size - int(np.count_nonzero(system.constrained))
             if self._excess_iterations >= self.config.reuse_refresh_factor * math.sqrt(free):
                 kept = None

@@ -55,7 +55,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numba
@@ -291,8 +291,9 @@ class LagrangeContact(FEContactModel):
         self._pose_before: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
         self._compliance = _Compliance(self.surface)
         # W~ is cached per kept factorisation and LM refreshes it by its own rules (response
-        # rounds, exact iterations): no refresh behind its back.
-        self.sim.integrator.solver.amortized_refresh = False
+        # rounds, exact iterations): no amortised refresh behind its back.
+        solver = self.sim.integrator.solver
+        solver.config = replace(solver.config, reuse_refresh_factor=0.0)
         # The kept factorisation is single precision, as the tissue's own Newton keeps it:
         # W~ and the CG preconditioner are approximations that the response rounds and the
         # CG correct to the exact A anyway. Measured (robust LM, apex press, loaded machine,
@@ -620,7 +621,8 @@ class LagrangeContact(FEContactModel):
         constrained = potential.constrained
         free = ~constrained
         energy, gradient, scale = potential.evaluate(y)
-        started_at_x = not math.isfinite(energy)
+        # (A quasi-static step already starts from x.)
+        started_at_x = not cfg.quasi_static and not math.isfinite(energy)
         if started_at_x:
             # The inertial prediction x + h v inverts a tet: start from x instead (the
             # constrained dofs where the potential puts them). Measured: robust LM, 105,004
