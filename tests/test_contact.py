@@ -118,6 +118,43 @@ def test_robust_lagrange_converges_quadratically_under_a_curved_probe(
     np.testing.assert_allclose(forces[0], forces[10**9], rtol=1e-5)
 
 
+def test_quasi_static_lagrange_relaxes_a_step_no_split_can_solve(
+    block, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A quasi-static step that does not converge even split max_subdivisions deep is relaxed
+    to rest with the probe held (proximal dynamic steps), then solved statically from there.
+    The static solver is made to fail here while any tissue point lies more than 10 um inside
+    the probe (at 176,506 tets it failed for a genuine reason: a limit of the static path,
+    lesion 3, 8 mm), so the relaxation steps must resolve that themselves; the step then
+    ends where the plain static solve does, in the same simulated time."""
+    from tissue.contact.lagrange import LagrangeContact
+
+    shape = SphereProbe(0.01)
+    plain = _model("lm", block, shape)
+    expected = _press(plain, shape, 0.002, 2, SIZE / 2)
+    static_step = LagrangeContact._robust_step
+    refused = []
+
+    def refusing_step(self, h, may_retry=False, relax_s=0.0):
+        if relax_s == 0.0:
+            points = self.surface.positions(self.sim.positions)
+            depth = -self.probe.signed_distance_world(points)[0].min()
+            if depth > 1e-5:
+                refused.append(depth)
+                return StepStatus.NOT_CONVERGED, np.zeros((0, 3)), np.zeros((0, 3)), {}
+        return static_step(self, h, may_retry, relax_s)
+
+    monkeypatch.setattr(LagrangeContact, "_robust_step", refusing_step)
+    relaxed = _model("lm", block, shape)
+    result = _press(relaxed, shape, 0.002, 2, SIZE / 2)
+    assert result.status is StepStatus.OK, result.diagnostics
+    assert refused, "the static solver was never refused: the case does not test relaxation"
+    assert result.diagnostics["relaxation_steps"] >= 1
+    assert result.time_s == pytest.approx(expected.time_s)
+    np.testing.assert_allclose(result.force_world, expected.force_world, rtol=1e-4, atol=1e-7)
+    assert np.abs(relaxed.sim.positions - plain.sim.positions).max() < 1e-7
+
+
 @pytest.mark.parametrize(("quasi", "depth_m", "steps"), [(False, 0.011, 10), (True, 0.009, 9)])
 def test_robust_lagrange_never_steps_past_an_inversion(
     block, quasi: bool, depth_m: float, steps: int

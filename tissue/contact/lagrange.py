@@ -107,6 +107,14 @@ _STALLED_ITERATIONS = 3
 # A robust Newton step that would invert a tet (the inversion barrier makes its energy
 # infinite) is halved until none inverts, down to this fraction of the step.
 _MIN_FEASIBLE_FRACTION = 2.0**-10
+# A quasi-static step that does not converge even when split is relaxed to rest (see
+# LagrangeContact._relaxed_step): at most this many relaxation steps, their pseudo time step
+# [s] starting at the tissue's time step, doubled after each that converges (pseudo-transient
+# continuation) up to this many tissue time steps; the static solve is tried again once the
+# inertial force of the last relaxation step is below this fraction of the contact load.
+_MAX_RELAXATION_STEPS = 60
+_MAX_RELAXATION_TIME_STEPS = 1024.0
+_RELAXED_INERTIA_FRACTION = 1e-2
 
 
 @dataclass(frozen=True)
@@ -321,23 +329,28 @@ class LagrangeContact(FEContactModel):
         """A robust step of ``h`` [s]; if it does not converge or ends with an inverted tet
         (possible only with the inversion barrier off), the state is restored and two half
         steps are taken with the probe half-way, up to ``max_subdivisions`` deep (as the
-        integrator does for the tissue alone)."""
+        integrator does for the tissue alone). A quasi-static step that still fails there is
+        relaxed to rest (:meth:`_relaxed_step`)."""
         sim = self.sim
         x0, v0, t0 = sim.positions.copy(), sim.velocities.copy(), sim.time_s
         warm0 = self._warm.copy()
         end = (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
         may_split = depth < sim.config.max_subdivisions and self._pose_before is not None
-        outcome = self._robust_step(h, may_split)
-        if (
-            outcome[0] not in (StepStatus.NOT_CONVERGED, StepStatus.INVERTED)
-            or depth >= sim.config.max_subdivisions
-            or self._pose_before is None
-        ):
+        quasi_static = sim.config.quasi_static
+        outcome = self._robust_step(h, may_split or quasi_static)
+        failed = outcome[0] in (StepStatus.NOT_CONVERGED, StepStatus.INVERTED)
+        if failed and quasi_static and not may_split:
+            sim.set_state(x0, v0, time_s=t0)
+            self._warm[:] = warm0
+            outcome = self._relaxed_step(h)
+            failed = False
+        if not failed or not may_split:
             outcome[3]["subdivisions"] = depth
             return outcome
         sim.set_state(x0, v0, time_s=t0)
         self._warm[:] = warm0
         begin = self._pose_before
+        assert begin is not None  # may_split
         middle_quat = begin[1] + (end[1] if begin[1] @ end[1] >= 0 else -end[1])
         self.probe.set_pose(0.5 * (begin[0] + end[0]), middle_quat / np.linalg.norm(middle_quat))
         self._pose_before = begin
@@ -346,7 +359,69 @@ class LagrangeContact(FEContactModel):
         self.probe.set_pose(*end)
         if first[0] in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
             return first
-        return self._subdivided_robust_step(0.5 * h, depth + 1)
+        second = self._subdivided_robust_step(0.5 * h, depth + 1)
+        second[3]["relaxation_steps"] = second[3].get("relaxation_steps", 0) + first[3].get(
+            "relaxation_steps", 0
+        )
+        return second
+
+    def _relaxed_step(self, h: float):
+        """A quasi-static step of ``h`` [s] that did not converge even when split, taken by
+        relaxing the tissue to rest with the probe held at its pose.
+
+        Where a deep press reaches a limit of the static path (a contact point on the
+        probe's rounded rim pressed harder than the tissue round it can hold: the exact
+        tangent, with the rim's curvature term, turns indefinite for the last 0.125 mm of a
+        1 mm increment and stays so however the increment is split; measured at 176,506 tets,
+        lesion 3, 8 mm) there is no nearby static solution for Newton to converge to: the
+        tissue snaps to another, as it would under any dissipative motion. Relaxation steps
+        follow that motion: each is a dynamic step from rest (inertia m / tau^2, the velocity
+        dropped after it: a proximal step, which descends the energy and cannot stop on an
+        unstable equilibrium), tau doubling while they converge. The step ends once one
+        leaves the tissue in static equilibrium to the Newton tolerance (diagnostic
+        ``static_residual``), or once the inertial force of the last is a small fraction of
+        the contact load and the static step, solved again from there, converges (each
+        failed try divides that fraction by ten). Relaxation steps take no simulated time;
+        the step's ``h`` is added at its end (diagnostic ``relaxation_steps``).
+        """
+        sim = self.sim
+        tau = sim.config.tissue_dt
+        mass = sim.integrator.mass_dof
+        threshold = _RELAXED_INERTIA_FRACTION
+        steps = 0
+        outcome = None
+        for steps in range(1, _MAX_RELAXATION_STEPS + 1):  # noqa: B007
+            x, v, t = sim.positions.copy(), sim.velocities.copy(), sim.time_s
+            warm = self._warm.copy()
+            outcome = self._robust_step(h, relax_s=tau)
+            if outcome[0] is not StepStatus.OK:
+                sim.set_state(x, v, time_s=t)
+                self._warm[:] = warm
+                tau *= 0.25
+                if tau < 1e-3 * sim.config.tissue_dt:
+                    break
+                continue
+            if outcome[3]["static_residual"] <= sim.config.newton_tolerance:
+                # At rest to the Newton tolerance: a static solution (the step's time is
+                # added here: relaxation steps take none).
+                sim.set_state(sim.positions, sim.velocities, time_s=t + h)
+                outcome[3]["relaxation_steps"] = steps
+                return outcome
+            inertia = float(np.linalg.norm(mass * (sim.positions - x).reshape(-1))) / tau**2
+            if inertia <= threshold * float(np.linalg.norm(self._warm)):
+                x, v, t = sim.positions.copy(), sim.velocities.copy(), sim.time_s
+                warm = self._warm.copy()
+                settled = self._robust_step(h, True)
+                if settled[0] is StepStatus.OK:
+                    settled[3]["relaxation_steps"] = steps
+                    return settled
+                sim.set_state(x, v, time_s=t)
+                self._warm[:] = warm
+                threshold *= 0.1  # not yet: relax further before the next try
+            tau = min(2.0 * tau, _MAX_RELAXATION_TIME_STEPS * sim.config.tissue_dt)
+        assert outcome is not None
+        status = outcome[0] if outcome[0] is not StepStatus.OK else StepStatus.NOT_CONVERGED
+        return status, outcome[1], outcome[2], {**outcome[3], "relaxation_steps": steps}
 
     # ------------------------------------------------------------------ shared
 
@@ -606,17 +681,26 @@ class LagrangeContact(FEContactModel):
         corrected[mask] = np.maximum(forces[mask] - rho * (rows[mask] @ step), 0.0)
         return corrected
 
-    def _robust_step(self, h: float, may_split: bool = False):
-        """One robust step of ``h`` [s]. ``may_split``: the caller will retry a step that
-        does not converge as two halves, so a quasi-static step whose exact tangent failed
-        gives up at once rather than crawl on the projected one (measured at 176,506 tets,
-        7 mm: 60 projected iterations, not converged, then the halves in 8 each)."""
+    def _robust_step(self, h: float, may_retry: bool = False, relax_s: float = 0.0):
+        """One robust step of ``h`` [s]. ``may_retry``: the caller will retry a step that
+        does not converge (as two halves, or relaxed), so a quasi-static step whose exact
+        tangent failed gives up at once rather than crawl on the projected one (measured at
+        176,506 tets, 7 mm: 60 projected iterations, not converged, then the halves in 8
+        each). ``relax_s`` > 0 (quasi-static only): a relaxation step of
+        :meth:`_relaxed_step`, a dynamic step from rest with that time step [s] that takes
+        no simulated time."""
         sim = self.sim
         start = time.perf_counter()
         integrator, cfg = sim.integrator, sim.integrator.config
         x, v = sim.positions.copy(), sim.velocities.copy()
         dofs, targets = sim.constraints()
-        potential = integrator.incremental_potential(x, v, h, dofs, targets)
+        if relax_s > 0.0:
+            potential = integrator.incremental_potential(
+                x, np.zeros_like(v), relax_s, dofs, targets
+            )
+            potential.quasi = False  # inertia about x, no damping (built for quasi-static)
+        else:
+            potential = integrator.incremental_potential(x, v, h, dofs, targets)
         y = potential.start()
         constrained = potential.constrained
         free = ~constrained
@@ -665,7 +749,7 @@ class LagrangeContact(FEContactModel):
             # lesion 1, pose 4 (tilted; the tissue creeps sideways under the frictionless
             # probe) the dynamic reference with it ended on the slid equilibrium, 1.78 N and
             # the lesion 7.5 mm away, where the cells and the reference without it hold 3.65 N.
-            contact_terms = bool(cfg.quasi_static)
+            contact_terms = bool(cfg.quasi_static) and relax_s == 0.0
             project = (
                 not exact_trusted
                 or (bool(cfg.project_psd) and residual > PROJECTION_SWITCH)
@@ -683,6 +767,8 @@ class LagrangeContact(FEContactModel):
                     project = stiffness is None
                     if project and attempt and contact_terms:
                         exact_trusted = False  # not definite: projected for the rest of the step
+                        if may_retry:
+                            break
                     system = potential.hessian_system(y, -gradient, project=project)
                     augmented = None
                     if stiffness and contacts.count:  # 0.0: the exact tangent without them
@@ -713,6 +799,8 @@ class LagrangeContact(FEContactModel):
             except Exception:  # noqa: BLE001 - a status, not a crash
                 status = StepStatus.SOLVER_FAILED
                 break
+            if not exact_trusted and may_retry and contact_terms:
+                break  # no definite exact tangent: the caller retries (not converged)
             if contacts.count:
                 offset = contacts.distance + rows @ free_step - self.params.contact_distance_m
                 if keep:
@@ -739,7 +827,7 @@ class LagrangeContact(FEContactModel):
                 integrator.solver.forget()
                 exact_trusted = False
                 rejected += 1
-                if may_split:
+                if may_retry:
                     break
                 continue
             if not finite:
@@ -788,12 +876,12 @@ class LagrangeContact(FEContactModel):
                 # Near a bifurcation of a deep press (the tissue could slide either way under
                 # the frictionless probe) the exact tangent is nearly singular and its full
                 # step can jump millimetres (measured: 9.6 mm for a 1 mm press); an exact
-                # step that does not reduce the KKT residual is undone, and the step is split
-                # (``may_split``) or goes on with the projected tangent, which always descends.
+                # step that does not reduce the KKT residual is undone, and the step is retried
+                # (``may_retry``: split or relaxed) or goes on with the projected tangent.
                 y, energy, gradient, scale, contacts, rows, forces, residual, penetration = before
                 exact_trusted = False
                 rejected += 1
-                if may_split:
+                if may_retry:
                     break
                 continue
             if residual <= cfg.newton_tolerance:
@@ -825,8 +913,15 @@ class LagrangeContact(FEContactModel):
         )
         if status is StepStatus.NOT_CONVERGED and outcome.status is StepStatus.OK:
             outcome.status = StepStatus.NOT_CONVERGED
-        status = sim.commit(outcome, h, start).status
+        status = sim.commit(outcome, 0.0 if relax_s else h, start).status
         points, on_probe = self._finish(contacts, forces)
+        static_residual = residual
+        if relax_s > 0.0:
+            # How far from static equilibrium the relaxed state is (no inertia).
+            static = integrator.incremental_potential(x, v, h, dofs, targets)
+            _, static_gradient, static_scale = static.evaluate(y)
+            unbalanced = (static_gradient - rows.T @ forces)[free]
+            static_residual = float(np.linalg.norm(unbalanced)) / max(static_scale, scale_floor)
         diagnostics = {
             "constraints": contacts.count,
             "active": int(np.sum(forces > 0)),
@@ -839,6 +934,8 @@ class LagrangeContact(FEContactModel):
             "kkt_residual": residual,
             "response_rounds": rounds,
             "min_volume_ratio": outcome.min_volume_ratio,
+            "relaxation_steps": 0,
+            "static_residual": static_residual,
         }
         return status, points, on_probe, diagnostics
 
