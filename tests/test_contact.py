@@ -135,14 +135,14 @@ def test_quasi_static_lagrange_relaxes_a_step_no_split_can_solve(
     static_step = LagrangeContact._robust_step
     refused = []
 
-    def refusing_step(self, h, may_retry=False, relax_s=0.0):
+    def refusing_step(self, h, may_retry=False, relax_s=0.0, **options):
         if relax_s == 0.0:
             points = self.surface.positions(self.sim.positions)
             depth = -self.probe.signed_distance_world(points)[0].min()
             if depth > 1e-5:
                 refused.append(depth)
                 return StepStatus.NOT_CONVERGED, np.zeros((0, 3)), np.zeros((0, 3)), {}
-        return static_step(self, h, may_retry, relax_s)
+        return static_step(self, h, may_retry, relax_s, **options)
 
     monkeypatch.setattr(LagrangeContact, "_robust_step", refusing_step)
     relaxed = _model("lm", block, shape)
