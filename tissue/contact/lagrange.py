@@ -303,7 +303,6 @@ class LagrangeContact(FEContactModel):
         # The probe pose of the last step (a failed robust step is retried from it).
         self._pose_before: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
         self._compliance = _Compliance(self.surface)
-        self._relaxed_last = False  # whether the last step needed relaxing
         # W~ is cached per kept factorisation and LM refreshes it by its own rules (response
         # rounds, exact iterations): no amortised refresh behind its back.
         solver = self.sim.integrator.solver
@@ -320,7 +319,6 @@ class LagrangeContact(FEContactModel):
         self._warm = np.zeros(self.surface.count)
         self._pose_before = None
         self._compliance = _Compliance(self.surface)
-        self._relaxed_last = False
 
     def _advance(
         self,
@@ -329,7 +327,6 @@ class LagrangeContact(FEContactModel):
             outcome = self._paper_step()
         else:
             outcome = self._subdivided_robust_step(self.sim.config.tissue_dt, 0)
-            self._relaxed_last = outcome[3].get("relaxation_steps", 0) > 0
         self._pose_before = (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
         return outcome
 
@@ -337,9 +334,8 @@ class LagrangeContact(FEContactModel):
         """A robust step of ``h`` [s]; if it does not converge or ends with an inverted tet
         (possible only with the inversion barrier off), the state is restored and two half
         steps are taken with the probe half-way, up to ``max_subdivisions`` deep (as the
-        integrator does for the tissue alone). A quasi-static step that still fails there, or
-        that fails right after a step that needed relaxing, is relaxed to rest
-        (:meth:`_relaxed_step`)."""
+        integrator does for the tissue alone). A quasi-static step that still fails there is
+        relaxed to rest (:meth:`_relaxed_step`)."""
         sim = self.sim
         x0, v0, t0 = sim.positions.copy(), sim.velocities.copy(), sim.time_s
         warm0 = self._warm.copy()
@@ -348,10 +344,11 @@ class LagrangeContact(FEContactModel):
         quasi_static = sim.config.quasi_static
         outcome = self._robust_step(h, may_split or quasi_static)
         failed = outcome[0] in (StepStatus.NOT_CONVERGED, StepStatus.INVERTED)
-        # Past a limit of the static path the next increments tend to fail the same way
-        # (176,506 tets, lesion 3: 9 mm failed at every split after 8 mm needed relaxing),
-        # so after a relaxed step a failed one is relaxed at once rather than split again.
-        if failed and quasi_static and (not may_split or self._relaxed_last):
+        # Only at the deepest split: relaxing a whole increment from rest is far harder (176,506
+        # tets, lesion 3, 9 mm after 8 mm needed relaxing: relaxation steps absorbing a 1 mm
+        # press did not converge in 20 iterations at any tau from 0.02 s down to 0.3 ms; at
+        # 1/16 mm they converge in 2-16).
+        if failed and quasi_static and not may_split:
             sim.set_state(x0, v0, time_s=t0)
             self._warm[:] = warm0
             outcome = self._relaxed_step(h)
