@@ -113,13 +113,13 @@ _MIN_FEASIBLE_FRACTION = 2.0**-10
 # continuation) up to this many tissue time steps; the static solve is tried again once the
 # inertial force of the last relaxation step is below this fraction of the contact load.
 _MAX_RELAXATION_STEPS = 60
+_MAX_RELAXATION_TIME_STEPS = 1024.0
+_RELAXED_INERTIA_FRACTION = 1e-2
 # Newton iterations a relaxation step may take before its pseudo time step is quartered.
 # Measured at 176,506 tets (lesion 3, 8 mm): the relaxation steps that converged took 2-16;
 # two at tau = 0.16 and 0.08 s ran to 60 without converging (90 s each), then 0.04 and
 # 0.02 s converged in 4 and 2.
 _RELAXATION_ITERATIONS = 20
-_MAX_RELAXATION_TIME_STEPS = 1024.0
-_RELAXED_INERTIA_FRACTION = 1e-2
 
 
 @dataclass(frozen=True)
