@@ -380,8 +380,8 @@ class LagrangeContact(FEContactModel):
 
         Where a deep press reaches a limit of the static path (a contact point on the
         probe's rounded rim pressed harder than the tissue round it can hold: the exact
-        tangent, with the rim's curvature term, turns indefinite for the last 0.125 mm of a
-        1 mm increment and stays so however the increment is split; measured at 176,506 tets,
+        tangent, with the rim's curvature term, turns indefinite in the last 1/16 of a 1 mm
+        increment and stays so however the increment is split; measured at 176,506 tets,
         lesion 3, 8 mm) there is no nearby static solution for Newton to converge to: the
         tissue snaps to another, as it would under any dissipative motion. Relaxation steps
         follow that motion: each is a dynamic step from rest (inertia m / tau^2, the velocity
