@@ -337,8 +337,7 @@ class LagrangeContact(FEContactModel):
         integrator does for the tissue alone). A quasi-static step that still fails there is
         relaxed to rest (:meth:`_relaxed_step`)."""
         sim = self.sim
-        x0, v0, t0 = sim.positions.copy(), sim.velocities.copy(), sim.time_s
-        warm0 = self._warm.copy()
+        before = self._checkpoint()
         end = (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
         may_split = depth < sim.config.max_subdivisions and self._pose_before is not None
         quasi_static = sim.config.quasi_static
@@ -349,15 +348,13 @@ class LagrangeContact(FEContactModel):
         # press did not converge in 20 iterations at any tau from 0.02 s down to 0.3 ms; at
         # 1/16 mm they converge in 2-16).
         if failed and quasi_static and not may_split:
-            sim.set_state(x0, v0, time_s=t0)
-            self._warm[:] = warm0
+            self._restore(before)
             outcome = self._relaxed_step(h)
             failed = False
         if not failed or not may_split:
             outcome[3]["subdivisions"] = depth
             return outcome
-        sim.set_state(x0, v0, time_s=t0)
-        self._warm[:] = warm0
+        self._restore(before)
         begin = self._pose_before
         assert begin is not None  # may_split
         middle_quat = begin[1] + (end[1] if begin[1] @ end[1] >= 0 else -end[1])
@@ -400,12 +397,10 @@ class LagrangeContact(FEContactModel):
         steps = 0
         outcome = None
         for steps in range(1, _MAX_RELAXATION_STEPS + 1):  # noqa: B007
-            x, v, t = sim.positions.copy(), sim.velocities.copy(), sim.time_s
-            warm = self._warm.copy()
+            before = self._checkpoint()
             outcome = self._robust_step(h, relax_s=tau)
             if outcome[0] is not StepStatus.OK:
-                sim.set_state(x, v, time_s=t)
-                self._warm[:] = warm
+                self._restore(before)
                 tau *= 0.25
                 if tau < 1e-3 * sim.config.tissue_dt:
                     break
@@ -413,24 +408,34 @@ class LagrangeContact(FEContactModel):
             if outcome[3]["static_residual"] <= sim.config.newton_tolerance:
                 # At rest to the Newton tolerance: a static solution (the step's time is
                 # added here: relaxation steps take none).
-                sim.set_state(sim.positions, sim.velocities, time_s=t + h)
+                sim.set_state(sim.positions, sim.velocities, time_s=sim.time_s + h)
                 outcome[3]["relaxation_steps"] = steps
                 return outcome
-            inertia = float(np.linalg.norm(mass * (sim.positions - x).reshape(-1))) / tau**2
+            moved = (sim.positions - before[0]).reshape(-1)
+            inertia = float(np.linalg.norm(mass * moved)) / tau**2
             if inertia <= threshold * float(np.linalg.norm(self._warm)):
-                x, v, t = sim.positions.copy(), sim.velocities.copy(), sim.time_s
-                warm = self._warm.copy()
+                relaxed = self._checkpoint()
                 settled = self._robust_step(h, True, exact_first=True)
                 if settled[0] is StepStatus.OK:
                     settled[3]["relaxation_steps"] = steps
                     return settled
-                sim.set_state(x, v, time_s=t)
-                self._warm[:] = warm
+                self._restore(relaxed)
                 threshold *= 0.1  # not yet: relax further before the next try
             tau = min(2.0 * tau, _MAX_RELAXATION_TIME_STEPS * sim.config.tissue_dt)
         assert outcome is not None
         status = outcome[0] if outcome[0] is not StepStatus.OK else StepStatus.NOT_CONVERGED
         return status, outcome[1], outcome[2], {**outcome[3], "relaxation_steps": steps}
+
+    def _checkpoint(self) -> tuple[NDArray[np.float64], NDArray[np.float64], float, NDArray]:
+        """The state a failed attempt is undone to: positions, velocities, time, warm start."""
+        sim = self.sim
+        return sim.positions.copy(), sim.velocities.copy(), sim.time_s, self._warm.copy()
+
+    def _restore(self, checkpoint) -> None:
+        """Undo to a :meth:`_checkpoint`."""
+        positions, velocities, time_s, warm = checkpoint
+        self.sim.set_state(positions, velocities, time_s=time_s)
+        self._warm[:] = warm
 
     # ------------------------------------------------------------------ shared
 
@@ -768,12 +773,11 @@ class LagrangeContact(FEContactModel):
             # A static solve from a relaxed state (``exact_first``) is near its solution
             # or nowhere near one: exact from the start, so that a failure costs one try.
             projected_iterations = 0 if exact_first else _KEPT_PROJECTED_ITERATIONS
-            project = not exact_trusted or (
-                not (exact_first and contact_terms)
-                and (
-                    (bool(cfg.project_psd) and residual > PROJECTION_SWITCH)
-                    or (keep and (not contact_terms or iterations <= projected_iterations))
-                )
+            far = bool(cfg.project_psd) and residual > PROJECTION_SWITCH
+            project = (
+                not exact_trusted
+                or (far and not (exact_first and contact_terms))
+                or (keep and (not contact_terms or iterations <= projected_iterations))
             )
             if iterations > 1 and contacts.count:
                 self._warm[contacts.points] = forces  # total forces of the last iterate
