@@ -155,6 +155,31 @@ def test_quasi_static_lagrange_relaxes_a_step_no_split_can_solve(
     assert np.abs(relaxed.sim.positions - plain.sim.positions).max() < 1e-7
 
 
+def test_quasi_static_lagrange_gives_up_cleanly_when_its_first_exact_tangent_fails(
+    block, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The static solve after a relaxation (exact tangent from its first iteration, to be
+    retried if it fails) gives up at once when that tangent is indefinite at every
+    augmentation. Before, it then crashed (the study's 12,861-tet reference, lesion 2: a
+    ValueError from forces of length 0 against the step's contact rows); now it reports not
+    converged, with the forces it started from. The solver is made to call every exact
+    tangent indefinite here."""
+    shape = SphereProbe(0.01)
+    model = _model("lm", block, shape)
+    _press(model, shape, 0.002, 2, SIZE / 2)
+    solver = model.sim.integrator.solver
+    factorize = solver.factorize
+    monkeypatch.setattr(solver, "factorize", lambda system: (factorize(system)[0], True))
+    started = model._warm.copy()
+    assert started.sum() > 0.0, "the press is not in contact: the case tests nothing"
+    status, points, on_probe, _ = model._robust_step(
+        model.sim.config.tissue_dt, True, exact_first=True
+    )
+    assert status is StepStatus.NOT_CONVERGED
+    assert np.all(np.isfinite(on_probe)) and len(points) >= 1
+    np.testing.assert_allclose(np.linalg.norm(on_probe, axis=1).sum(), started.sum(), rtol=1e-9)
+
+
 @pytest.mark.parametrize(("quasi", "depth_m", "steps"), [(False, 0.011, 10), (True, 0.009, 9)])
 def test_robust_lagrange_never_steps_past_an_inversion(
     block, quasi: bool, depth_m: float, steps: int

@@ -421,3 +421,30 @@ def test_robust_lm_settles_onto_its_own_levels_reference() -> None:
         np.subtract(record["tracked_m"], reference["tracked_m"]), axis=1
     )  # fmt: skip
     assert len(errors) == 4 and errors.max() < 1e-4, np.round(errors * 1e3, 3)
+
+
+def test_a_task_that_raises_is_reported_and_the_rest_still_run(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A cell whose code raises (a bug, not an instability) is named in the outcome and not
+    written; every other cell is, and a rerun retries the failed one. Before, the exception
+    ended the whole study (with a process pool: every cell in flight lost)."""
+    import agents.study.runner as runner
+
+    run_cell = runner.run_cell
+    broken = "robust/penalty/623/1"
+
+    def failing(spec: StudySpec, cell: Cell) -> dict:
+        if cell.key == broken:
+            raise ValueError("a bug in one cell")
+        return run_cell(spec, cell)
+
+    monkeypatch.setattr(runner, "run_cell", failing)
+    out = tmp_path / "study"
+    outcome = run_study(TINY, out, progress=False, log=_quiet)
+    assert outcome.failed == [f"cell {broken}: ValueError: a bug in one cell"]
+    keys = {record["key"] for record in read_results(out / RESULTS_FILE)}
+    assert broken not in keys and len(keys) == 7 and outcome.ran_now == 7
+    monkeypatch.setattr(runner, "run_cell", run_cell)
+    again = run_study(TINY, out, progress=False, log=_quiet)
+    assert again.failed == [] and again.ran_now == 1 and again.skipped == 7

@@ -139,6 +139,11 @@ def _dot(a, b):  # pragma: no cover - compiled
     return acc
 
 
+def vector_norm(x: NDArray[np.float64]) -> float:
+    """Euclidean norm of a 1-D float64 array in a serial loop (not BLAS: see above)."""
+    return math.sqrt(_dot(x, x))
+
+
 @numba.njit(cache=True)
 def _free_square_norm(x, constrained):  # pragma: no cover - compiled
     """Sum of x_i^2 over the free (not constrained) entries."""

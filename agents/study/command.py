@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from agents.study.spec import (
@@ -120,4 +121,6 @@ def run_study_command(args: argparse.Namespace) -> int:
     for name in ("results.jsonl", "stability.md", "errors.png", "times.png",
                  "accuracy_vs_time.png", "report.md", "report.html"):  # fmt: skip
         print(f"written: {args.out / name}")
-    return 0
+    for failure in outcome.failed:
+        print(f"failed (a bug, please report it; rerun to retry): {failure}", file=sys.stderr)
+    return 1 if outcome.failed else 0

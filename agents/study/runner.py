@@ -22,7 +22,7 @@ import os
 import tempfile
 from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -68,6 +68,9 @@ class StudyOutcome:
     ran_now: int
     skipped: int
     references_computed: int
+    # Tasks that raised (a bug, not an instability): "cell KEY: Error: message" or
+    # "reference lesion N: ...". Nothing of theirs is written; a rerun retries them.
+    failed: list[str] = field(default_factory=list)
 
 
 def read_results(path: Path) -> list[dict[str, Any]]:
@@ -211,8 +214,16 @@ def run_study(
         computed = 0
         bar = _progress_bar(len(tasks), progress)
         window = 1 if workers == 1 and ray_address is None else 2 * workers
-        for (kind, item), result in _run_all(tasks, spec, submit, window):
+        failed: list[str] = []
+        failed_cells = 0
+        for (kind, item), result, error in _run_all(tasks, spec, submit, window):
             bar.update(1)
+            if error is not None:
+                name = f"cell {item.key}" if kind == "cell" else f"reference lesion {item}"
+                failed.append(f"{name}: {type(error).__name__}: {error}")
+                failed_cells += int(kind == "cell")
+                log(f"{failed[-1]} -- not recorded; the study goes on, and a rerun retries it")
+                continue
             if kind == "reference":
                 record, fresh = result
                 references[item] = record
@@ -233,7 +244,7 @@ def run_study(
     from agents.study.report import write_report
 
     write_report(out, spec, records, references)
-    return StudyOutcome(records, references, len(cells), len(done), computed)
+    return StudyOutcome(records, references, len(cells) - failed_cells, len(done), computed, failed)
 
 
 # A queued piece of work: ("cell", Cell) or ("reference", lesion).
@@ -358,8 +369,9 @@ def _reference_task(spec: StudySpec, lesion: int) -> tuple[dict[str, Any], bool]
 
 def _run_all(
     tasks: list[_Task], spec: StudySpec, submit: Callable[..., Future[Any]], window: int
-) -> Iterator[tuple[_Task, Any]]:
-    """Yield each task with its result as it finishes (at most ``window`` in flight)."""
+) -> Iterator[tuple[_Task, Any, Exception | None]]:
+    """Yield each task with its result, or the exception it raised, as it finishes (at most
+    ``window`` in flight): one task's bug must not take the others' work with it."""
     pending: dict[Future[Any], _Task] = {}
     queue = list(tasks)
     while queue or pending:
@@ -369,7 +381,13 @@ def _run_all(
             pending[submit(function, spec, task[1])] = task
         finished, _ = wait(pending, return_when=FIRST_COMPLETED)
         for future in finished:
-            yield pending.pop(future), future.result()
+            task = pending.pop(future)
+            try:
+                result = future.result()
+            except Exception as error:  # noqa: BLE001 - reported by the caller
+                yield task, None, error
+            else:
+                yield task, result, None
 
 
 class _Immediate(Future[Any]):
