@@ -372,6 +372,34 @@ def test_patch_test_interior_follows_affine_map(
 # PSD projection
 
 
+@pytest.mark.parametrize("gap", [0.5, 2e-3, 1e-3, 5e-4, 1e-8, 0.0])
+def test_closed_form_eigen_solver_is_accurate_near_repeated_eigenvalues(gap: float) -> None:
+    """The projection's 3 x 3 eigen-solver (closed form, Jacobi for near-repeated roots):
+    A v = lambda v to round-off and V orthonormal, for two eigenvalues ``gap`` apart
+    (relative) on random bases, signs mixed as in the scaling block. Where the gap is wide
+    enough for the closed form it also returns them sorted largest first, which the Jacobi
+    iteration does not (so the closed form is what ran there)."""
+    from tissue import fem_kernels as kern
+
+    rng = np.random.default_rng(3)
+    count = 400
+    basis, _ = np.linalg.qr(rng.normal(size=(count, 3, 3)))
+    values = rng.normal(size=(count, 3))
+    values[:, 1] = values[:, 0] * (1.0 + gap)
+    matrices = np.einsum("nij,nj,nkj->nik", basis, values, basis)
+    matrices = 0.5 * (matrices + matrices.transpose(0, 2, 1))
+    w, v, r = np.empty(3), np.empty((3, 3)), np.empty((3, 3))
+    descending = 0
+    for a in matrices:
+        kern._sym3_eigen_fast(a.copy(), w, v, r)
+        scale = np.abs(w).max()
+        assert np.abs(a @ v - v * w).max() < 1e-12 * scale
+        assert np.abs(v.T @ v - np.eye(3)).max() < 1e-13
+        descending += int(w[0] >= w[1] >= w[2])
+    if gap >= 0.1:  # far above kern._CLOSED_FORM_GAP for almost every sample
+        assert descending >= 0.9 * count
+
+
 @pytest.mark.parametrize("anti_locking", ANTI_LOCKING)
 @pytest.mark.parametrize("law", LAWS)
 def test_projected_tangent_is_psd_where_the_exact_one_is_not(

