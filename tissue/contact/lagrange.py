@@ -224,8 +224,8 @@ class _Compliance:
     constrained dofs) and n_p its contact normal as it was when its entries were computed.
 
     W~ of any contact set is then a submatrix. A point costs one solve, F^-1 E_p^T n_p, the
-    first time it is seen under F, and again only once its normal has turned by more than
-    :data:`_NORMAL_TURN_COS` (a point sliding round the probe's rim); the dense columns are
+    first time it is seen under F, and again only once its normal has turned by more than 2
+    degrees (:data:`_NORMAL_TURN_COS`; a point sliding round the probe's rim); the columns are
     never kept (at 176k tets they take 0.8 MB per point). A new F starts afresh, so W~ of a
     freshly factorised A is exact. Between, the normals it carries may lag the contacts' by
     up to that angle: one more approximation of W~ beside F's own, which the response rounds
@@ -580,7 +580,7 @@ class LagrangeContact(FEContactModel):
             # The free step's own solve leaves a residual up to ``accuracy``: the response to
             # the forces' change (mostly much smaller than the step's load) needs no smaller
             # one, so its relative tolerance is that residual over its own load. Measured on
-            # the 26,220-tet apex press: CG iterations per response solve 2.6 -> (see README).
+            # the 26,220-tet apex press: CG iterations per response solve 2.6 -> 2.4.
             load = change.free_rhs_norm()
             relative = _RESPONSE_TOLERANCE_CAP if load == 0.0 else accuracy / load
             increment, report = solver.solve(
