@@ -218,6 +218,10 @@ def projected_gauss_seidel(matrix, offset, force, tolerance, max_iterations):  #
     return max_iterations, change
 
 
+# What a failed attempt is undone to: positions [m], velocities [m/s], time [s], warm start [N].
+_Checkpoint = tuple[NDArray[np.float64], NDArray[np.float64], float, NDArray[np.float64]]
+
+
 class _Compliance:
     """Entries W~_pq = n_p^T E_p F^-1 E_q^T n_q [m/N] between collision-surface points p and q
     for one kept factorisation F, E_p the point's barycentric embedding (3 x dofs, zero at
@@ -255,14 +259,15 @@ class _Compliance:
             self.slot[:] = -1
             self.count = 0
         slots = self.slot[points]
-        stale = slots < 0
-        known = ~stale
+        unseen = slots < 0
+        known = ~unseen
+        stale = unseen.copy()  # unseen, or seen with a normal that has turned since
         if np.any(known):
             cosine = np.einsum("ij,ij->i", self.normals[slots[known]], normals[known])
             stale[known] = cosine < _NORMAL_TURN_COS
         if np.any(stale):
-            self._reserve(int(np.count_nonzero(slots < 0)))
-            new = points[slots < 0]
+            new = points[unseen]
+            self._reserve(new.size)
             self.slot[new] = np.arange(self.count, self.count + new.size)
             self.points[self.count : self.count + new.size] = new
             self.count += new.size
@@ -466,12 +471,12 @@ class LagrangeContact(FEContactModel):
         status = outcome[0] if outcome[0] is not StepStatus.OK else StepStatus.NOT_CONVERGED
         return status, outcome[1], outcome[2], {**outcome[3], "relaxation_steps": steps}
 
-    def _checkpoint(self) -> tuple[NDArray[np.float64], NDArray[np.float64], float, NDArray]:
+    def _checkpoint(self) -> _Checkpoint:
         """The state a failed attempt is undone to: positions, velocities, time, warm start."""
         sim = self.sim
         return sim.positions.copy(), sim.velocities.copy(), sim.time_s, self._warm.copy()
 
-    def _restore(self, checkpoint) -> None:
+    def _restore(self, checkpoint: _Checkpoint) -> None:
         """Undo to a :meth:`_checkpoint`."""
         positions, velocities, time_s, warm = checkpoint
         self.sim.set_state(positions, velocities, time_s=time_s)
