@@ -96,6 +96,26 @@ def _check_depths(depths_m: list[float]) -> None:
         )
 
 
+@dataclass(frozen=True)
+class CompressionProgress:
+    """Where a run stands just after recording a depth: what :func:`run_compression` needs
+    to resume it there.
+
+    Attributes:
+        stops_done: the waypoints passed, the last of them the depth just recorded.
+        motion_done: the motion steps completed (for ``stability_percent``).
+        steps: the step records so far.
+        levels: the level records so far.
+        model_state: the model's :meth:`~tissue.contact.base.ContactModel.saved_state`.
+    """
+
+    stops_done: int
+    motion_done: int
+    steps: list[dict[str, Any]]
+    levels: list[dict[str, Any]]
+    model_state: dict[str, NDArray[np.float64]]
+
+
 def run_compression(
     model: ContactModel,
     start: Waypoint,
@@ -105,6 +125,8 @@ def run_compression(
     monitor: StabilityMonitor | None = None,
     observer: Callable[[ContactResult, NDArray[np.float64]], None] | None = None,
     max_settle_steps: int = MAX_SETTLE_STEPS,
+    resume: CompressionProgress | None = None,
+    on_depth: Callable[[CompressionProgress], None] | None = None,
 ) -> dict[str, Any]:
     """Drive ``model`` through the waypoints; returns the JSON-ready record.
 
@@ -117,26 +139,50 @@ def run_compression(
     paper's stability metric; a failure while settling at a depth counts as failing on
     that depth's last motion step). ``observer(result, probe_position)`` is called after
     every step.
+
+    ``on_depth(progress)`` is called after each depth is recorded, with what ``resume``
+    needs to continue from there (a :class:`CompressionProgress`, the model's state included:
+    only models with :meth:`~tissue.contact.base.ContactModel.saved_state`). A resumed run
+    takes the same path from that depth on, its records continuing the saved ones; the
+    ``monitor`` is caught up on the saved steps first.
     """
     if not (np.isfinite(speed_m_s) and speed_m_s > 0):
         raise ConfigError(f"--speed must be a positive number of m/s; got {speed_m_s!r}")
     dt = model.dt
-    model.reset()
-    model.probe.set_pose(start.position, start.quat_wxyz)
-    # Paths are planned against the collision surface, so that is what must start clear (a
-    # method holding the volume's boundary nodes may find one a fraction of a mm inside, where
-    # the surface's flat facets cut under the curved boundary; it pushes it out in step one).
-    distance, _ = model.probe.signed_distance_world(model.surface.positions(model.node_positions))
-    if distance.size and float(distance.min()) < 0.0:
-        raise TissueInputError(
-            "the probe starts inside the tissue (penetration "
-            f"{-float(distance.min()) * 1e3:.2f} mm); start it clear of the surface"
-        )
-    steps: list[dict[str, Any]] = []
-    levels: list[dict[str, Any]] = []
     counts = _motion_step_counts(start, stops, speed_m_s, dt)
-    motion_done = 0
     instability: dict[str, Any] | None = None
+    if resume is None:
+        model.reset()
+        model.probe.set_pose(start.position, start.quat_wxyz)
+        # Paths are planned against the collision surface, so that is what must start clear
+        # (a method holding the volume's boundary nodes may find one a fraction of a mm inside,
+        # where the surface's flat facets cut under the curved boundary; it pushes it out in
+        # step one).
+        surface = model.surface.positions(model.node_positions)
+        distance, _ = model.probe.signed_distance_world(surface)
+        if distance.size and float(distance.min()) < 0.0:
+            raise TissueInputError(
+                "the probe starts inside the tissue (penetration "
+                f"{-float(distance.min()) * 1e3:.2f} mm); start it clear of the surface"
+            )
+        steps: list[dict[str, Any]] = []
+        levels: list[dict[str, Any]] = []
+        motion_done, first_stop = 0, 0
+        position, quat = start.position.copy(), start.quat_wxyz.copy()
+    else:
+        if not 1 <= resume.stops_done <= len(stops):
+            raise ConfigError(
+                f"cannot resume after waypoint {resume.stops_done} of a path of {len(stops)}"
+            )
+        reached = stops[resume.stops_done - 1]
+        position, quat = reached.position.copy(), reached.quat_wxyz.copy()
+        model.probe.set_pose(position, quat)
+        model.load_state(resume.model_state)
+        steps, levels = list(resume.steps), list(resume.levels)
+        motion_done, first_stop = resume.motion_done, resume.stops_done
+        if monitor is not None:
+            for done in steps:
+                monitor.observe(np.asarray(done["probe_pos"]), np.asarray(done["landmarks"]))
 
     def take(pose: NDArray[np.float64], pose_quat: NDArray[np.float64]) -> ContactResult:
         nonlocal instability
@@ -150,9 +196,10 @@ def run_compression(
                 instability = {"step": len(steps) - 1, "kind": found.kind, "detail": found.detail}
         return result
 
-    position, quat = start.position.copy(), start.quat_wxyz.copy()
     level_status = StepStatus.OK
-    for stop, count in zip(stops, counts, strict=True):
+    for index, (stop, count) in enumerate(zip(stops, counts, strict=True)):
+        if index < first_stop:
+            continue
         begin, begin_quat = position, quat
         for i in range(1, count + 1):
             fraction = i / count
@@ -178,6 +225,12 @@ def run_compression(
             motion_done -= 1  # the depth was reached but never held
             break
         levels.append(_level_record(result, stop.depth_m, model, level_status))
+        if on_depth is not None:
+            on_depth(
+                CompressionProgress(
+                    index + 1, motion_done, list(steps), list(levels), model.saved_state()
+                )
+            )
         if progress:
             print(
                 f"depth {stop.depth_m * 1e3:6.2f} mm: force {levels[-1]['force_normal_n']:8.4f} N, "

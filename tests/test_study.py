@@ -121,6 +121,63 @@ def test_study_directory_carries_its_references_to_a_fresh_cache(
     assert not (tmp_path / "fresh-cache" / "references").exists()
 
 
+def test_a_killed_reference_resumes_from_its_last_depth(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A reference killed after its second depth (here: the process ending as it saved that
+    progress) resumes from there on the next run, taking only the remaining steps, and ends
+    where an uninterrupted one does, to the Newton tolerance. Once complete, its progress
+    file is gone."""
+    import agents.study.reference as reference
+    from agents.study.cell import scene_for
+    from tissue.contact.lagrange import LagrangeContact
+
+    spec = StudySpec(
+        levels=(623,), lesions=(1,), reference_level=623, depths_m=(0.003, 0.006, 0.009)
+    )
+    scene = scene_for(spec.scene)
+    step, taken = LagrangeContact.step, []
+
+    def counting(self, *args):
+        taken.append(1)
+        return step(self, *args)
+
+    monkeypatch.setattr(LagrangeContact, "step", counting)
+    whole = reference.compute_reference(spec, scene, 1)
+    whole_steps = len(taken)
+    save = reference._save_progress
+
+    class KilledError(Exception):
+        pass
+
+    def save_then_die(path, progress, *args):
+        save(path, progress, *args)
+        if progress.stops_done == 2:
+            raise KilledError
+
+    progress_path = tmp_path / "reference-x.partial.npz"
+    monkeypatch.setattr(reference, "_save_progress", save_then_die)
+    taken.clear()
+    with pytest.raises(KilledError):
+        reference.compute_reference(spec, scene, 1, progress_path)
+    assert progress_path.is_file()
+    before_kill = len(taken)
+    monkeypatch.setattr(reference, "_save_progress", save)
+    taken.clear()
+    # The study's entry point: finds the progress beside the cache file, caches the result.
+    monkeypatch.setattr(reference, "reference_path", lambda *_: tmp_path / "reference-x.json")
+    resumed, computed = reference.load_or_compute_reference(spec, scene, 1)
+    assert computed and (tmp_path / "reference-x.json").is_file()
+    assert not progress_path.exists()
+    assert resumed["resumed_after"] == [2] and whole["resumed_after"] == []
+    assert resumed["level_status"] == whole["level_status"] == ["ok"] * 3
+    # Only the third depth's steps are taken again.
+    assert len(taken) > 0 and before_kill + len(taken) == whole_steps, (before_kill, taken)
+    errors = np.linalg.norm(np.subtract(resumed["tracked_m"], whole["tracked_m"]), axis=1)
+    assert errors.max() < 1e-6, errors
+    np.testing.assert_allclose(resumed["force_normal_n"], whole["force_normal_n"], rtol=1e-4)
+
+
 def test_killed_study_resumes_without_redoing_cells(tmp_path: Path) -> None:
     out = tmp_path / "study"
     command = [

@@ -63,7 +63,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from agents.compress import SETTLED_SPEED_M_S, run_compression
+import numpy as np
+
+from agents.compress import SETTLED_SPEED_M_S, CompressionProgress, run_compression
 from agents.study.cell import STUDY_LIMITS
 from agents.study.scenes import StudyScene
 from agents.study.spec import StudySpec, level_label
@@ -135,14 +137,17 @@ def load_or_compute_reference(
     path = reference_path(spec, scene, lesion)
     if path.exists():
         return json.loads(path.read_text()), False
-    record = compute_reference(spec, scene, lesion)
+    progress = partial_path(path)
+    record = compute_reference(spec, scene, lesion, progress)
     if not keepable(record):
+        # Cut short by the machine's load: keep the progress, which a rerun resumes from.
         return record, True
     path.parent.mkdir(parents=True, exist_ok=True)
     handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
     with os.fdopen(handle, "w") as file:
         json.dump(record, file)
     os.replace(temporary, path)  # atomic: a concurrent reader never sees half a file
+    progress.unlink(missing_ok=True)
     return record, True
 
 
@@ -152,10 +157,69 @@ def keepable(record: dict[str, Any]) -> bool:
     return (record["instability"] or {}).get("kind") != "timeout"
 
 
-def compute_reference(spec: StudySpec, scene: StudyScene, lesion: int) -> dict[str, Any]:
+def partial_path(path: Path) -> Path:
+    """Where the reference cached at ``path`` keeps its progress while being computed."""
+    return path.with_name(path.stem + ".partial.npz")
+
+
+def _save_progress(
+    path: Path, progress: CompressionProgress, elapsed_s: float, resumed: list[int]
+) -> None:
+    """Write ``progress`` atomically (a kill mid-write leaves the last complete one)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    record = {
+        "stops_done": progress.stops_done,
+        "motion_done": progress.motion_done,
+        "steps": progress.steps,
+        "levels": progress.levels,
+        "elapsed_s": elapsed_s,
+        "resumed_after": resumed,
+    }
+    arrays: dict[str, Any] = {f"state_{k}": v for k, v in progress.model_state.items()}
+    arrays["record"] = np.array(json.dumps(record))
+    handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    with os.fdopen(handle, "wb") as file:
+        np.savez(file, **arrays)
+    os.replace(temporary, path)
+
+
+def _load_progress(path: Path) -> tuple[CompressionProgress, float, list[int]] | None:
+    """The progress saved at ``path``, or None (none, or unreadable: start afresh)."""
+    if not path.exists():
+        return None
+    try:
+        with np.load(path) as saved:
+            record = json.loads(str(saved["record"]))
+            state = {
+                name.removeprefix("state_"): saved[name]
+                for name in saved.files
+                if name.startswith("state_")
+            }
+        progress = CompressionProgress(
+            record["stops_done"], record["motion_done"], record["steps"], record["levels"], state
+        )
+        return progress, float(record["elapsed_s"]), list(record["resumed_after"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def compute_reference(
+    spec: StudySpec, scene: StudyScene, lesion: int, progress_path: Path | None = None
+) -> dict[str, Any]:
     """Run the converged LM experiment for ``lesion`` on the reference level, of the
-    scene's :func:`reference_kind`."""
+    scene's :func:`reference_kind`.
+
+    With ``progress_path`` it saves its progress there after each depth and, if it finds
+    progress saved there, resumes from it: on the 176,506-tet level a reference takes an
+    hour or more, and a killed study then loses at most one depth of it. ``wall_s`` counts
+    every run's time; ``resumed_after`` lists the depths (counted from 1) it resumed after.
+    The file is removed once the reference is complete. A resumed reference agrees with an
+    uninterrupted one to the solver tolerance (the kept factorisation is rebuilt)."""
     started = time.perf_counter()
+    saved = _load_progress(progress_path) if progress_path is not None else None
+    resume, before_s, resumed = (None, 0.0, []) if saved is None else saved
+    if resume is not None:
+        resumed = [*resumed, resume.stops_done]
     kind = reference_kind(scene)
     mesh = scene.mesh(spec.reference_level)
     shape = parse_probe_spec("face")
@@ -179,8 +243,20 @@ def compute_reference(spec: StudySpec, scene: StudyScene, lesion: int) -> dict[s
     # does not matter (references at 623 / 2,539 / 4,126 tets came out bit-identical with
     # holds of 50 and 250 steps); dynamic: the cells' speed and hold.
     speed = REFERENCE_INCREMENT_M / model.dt if kind == QUASI_STATIC else spec.speed_m_s
+
+    def keep(progress: CompressionProgress) -> None:
+        assert progress_path is not None
+        _save_progress(progress_path, progress, before_s + time.perf_counter() - started, resumed)
+
     run = run_compression(
-        model, start, stops, speed, monitor=monitor, max_settle_steps=spec.settle_steps
+        model,
+        start,
+        stops,
+        speed,
+        monitor=monitor,
+        max_settle_steps=spec.settle_steps,
+        resume=resume,
+        on_depth=keep if progress_path is not None else None,
     )
     assert mesh.landmarks is not None
     tracked = mesh.landmarks.names.index(scene.landmark_name(lesion))
@@ -194,7 +270,8 @@ def compute_reference(spec: StudySpec, scene: StudyScene, lesion: int) -> dict[s
         "force_normal_n": [level["force_normal_n"] for level in run["levels"]],
         "level_status": [level["status"] for level in run["levels"]],
         "instability": run["instability"],
-        "wall_s": time.perf_counter() - started,
+        "wall_s": before_s + time.perf_counter() - started,
+        "resumed_after": resumed,
         "method": f"lm, robust, {kind}",
         "kind": kind,
         "tolerance": REFERENCE_TOLERANCE,

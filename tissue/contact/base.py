@@ -154,6 +154,24 @@ class ContactModel(abc.ABC):
         self._time = 0.0
         self._reset_tissue()
 
+    def saved_state(self) -> dict[str, NDArray[np.float64]]:
+        """The state a run can be resumed from (:meth:`load_state`): named arrays, all a
+        later step depends on beyond the mesh, materials and parameters. Kept factorisations
+        and other caches are not part of it: they are rebuilt, so a resumed run agrees with
+        an uninterrupted one to the solver's tolerance, not bit for bit.
+
+        Only strategies that need it implement it (Lagrange multipliers: the study's
+        references, runs of an hour and more, resume from it)."""
+        raise NotImplementedError(
+            f"{type(self).__name__} cannot save its state; resumable runs need the 'lm' method"
+        )
+
+    def load_state(self, state: dict[str, NDArray[np.float64]]) -> None:
+        """Continue from a :meth:`saved_state` of a model built the same way."""
+        raise NotImplementedError(
+            f"{type(self).__name__} cannot load a saved state; resumable runs need the 'lm' method"
+        )
+
     def step(self, position_world: ArrayLike, quat_wxyz: ArrayLike) -> ContactResult:
         """Move the probe to the pose and advance the tissue one ``tissue_dt``.
 

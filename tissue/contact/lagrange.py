@@ -65,7 +65,7 @@ from numpy.typing import NDArray
 
 from tissue.contact.base import ContactMethod, SurfacePoints
 from tissue.contact.fe_model import Contacts, FEContactModel, constraint_rows, detect_contacts
-from tissue.errors import ConfigError
+from tissue.errors import ConfigError, TissueInputError
 from tissue.integrator import PROJECTION_SWITCH, RESIDUAL_SCALE_FLOOR, IntegrationMode
 from tissue.solvers import (
     ConstrainedSystem,
@@ -470,6 +470,41 @@ class LagrangeContact(FEContactModel):
         assert outcome is not None
         status = outcome[0] if outcome[0] is not StepStatus.OK else StepStatus.NOT_CONVERGED
         return status, outcome[1], outcome[2], {**outcome[3], "relaxation_steps": steps}
+
+    def saved_state(self) -> dict[str, NDArray[np.float64]]:
+        """Positions and velocities [m, m/s] (nodes, 3), time [s], the warm-start forces
+        [N] by surface point and the last probe pose (a split step interpolates from it)."""
+        sim = self.sim
+        state = {
+            "positions": sim.positions.copy(),
+            "velocities": sim.velocities.copy(),
+            "time_s": np.array([sim.time_s, self.time_s]),
+            "warm_n": self._warm.copy(),
+        }
+        if self._pose_before is not None:
+            state["pose_before"] = np.concatenate(self._pose_before)
+        return state
+
+    def load_state(self, state: dict[str, NDArray[np.float64]]) -> None:
+        try:
+            positions, velocities = state["positions"], state["velocities"]
+            tissue_time, model_time = (float(t) for t in state["time_s"])
+            warm = np.asarray(state["warm_n"], dtype=np.float64)
+        except (KeyError, TypeError, ValueError) as error:
+            raise TissueInputError(
+                f"not a saved Lagrange-multiplier state ({error}); pass what saved_state() returned"
+            ) from error
+        if warm.shape != self._warm.shape:
+            raise TissueInputError(
+                f"the saved state has {warm.shape[0]} contact points, this model "
+                f"{self._warm.shape[0]}: it was saved from another mesh"
+            )
+        self._reset_tissue()  # caches of the state being left
+        self.sim.set_state(positions, velocities, time_s=tissue_time)
+        self._time = model_time
+        self._warm[:] = warm
+        pose = state.get("pose_before")
+        self._pose_before = None if pose is None else (pose[:3].copy(), pose[3:].copy())
 
     def _checkpoint(self) -> _Checkpoint:
         """The state a failed attempt is undone to: positions, velocities, time, warm start."""

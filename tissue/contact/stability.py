@@ -136,6 +136,29 @@ class StabilityMonitor:
         self._largest_travel = 0.0
         self._recent_motion: list[float] = []
 
+    def observe(
+        self, probe_position: NDArray[np.float64], landmarks: NDArray[np.float64]
+    ) -> tuple[float, NDArray[np.float64] | None]:
+        """Add one step to the history the checks compare against, without judging it: how
+        a resumed run catches up on the steps it did before (:meth:`check` calls it too).
+
+        Args:
+            probe_position: the probe origin of the step [m], (3,).
+            landmarks: the landmark positions after it [m], (landmark_count, 3).
+
+        Returns:
+            (the largest probe motion per step lately [m], the previous step's landmarks or
+            None).
+        """
+        probe_position = np.asarray(probe_position, dtype=np.float64)
+        self._recent_motion.append(float(np.linalg.norm(probe_position - self._previous_probe)))
+        del self._recent_motion[: -self.limits.recent_steps]
+        self._previous_probe = probe_position.copy()
+        travel = float(np.linalg.norm(probe_position - self._start))
+        self._largest_travel = max(self._largest_travel, travel)
+        previous, self._previous_landmarks = self._previous_landmarks, landmarks
+        return max(self._recent_motion), previous
+
     def check(
         self,
         result: ContactResult,
@@ -149,15 +172,8 @@ class StabilityMonitor:
             node_positions: tissue node positions after the step [m], (node_count, 3).
             probe_position: the probe origin the step was taken at [m], (3,).
         """
-        probe_position = np.asarray(probe_position, dtype=np.float64)
-        self._recent_motion.append(float(np.linalg.norm(probe_position - self._previous_probe)))
-        del self._recent_motion[: -self.limits.recent_steps]
-        probe_motion = max(self._recent_motion)
-        self._previous_probe = probe_position.copy()
-        travel = float(np.linalg.norm(probe_position - self._start))
-        self._largest_travel = max(self._largest_travel, travel)
         landmarks = result.landmarks
-        previous_landmarks, self._previous_landmarks = self._previous_landmarks, landmarks
+        probe_motion, previous_landmarks = self.observe(probe_position, landmarks)
         if result.status.is_failure:
             return Instability("status", f"the tissue step reported '{result.status.value}'")
         finite = (
