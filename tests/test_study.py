@@ -130,6 +130,7 @@ def test_a_killed_reference_resumes_from_its_last_depth(
     file is gone."""
     import agents.study.reference as reference
     from agents.study.cell import scene_for
+    from agents.study.runner import _log_reference
     from tissue.contact.lagrange import LagrangeContact
 
     spec = StudySpec(
@@ -176,6 +177,9 @@ def test_a_killed_reference_resumes_from_its_last_depth(
     errors = np.linalg.norm(np.subtract(resumed["tracked_m"], whole["tracked_m"]), axis=1)
     assert errors.max() < 1e-6, errors
     np.testing.assert_allclose(resumed["force_normal_n"], whole["force_normal_n"], rtol=1e-4)
+    lines: list[str] = []
+    _log_reference(spec, 1, resumed, True, lines.append)
+    assert "resumed after depth 2" in lines[0], lines
 
 
 def test_killed_study_resumes_without_redoing_cells(tmp_path: Path) -> None:

@@ -34,6 +34,7 @@ from agents.study.cell import run_cell, scene_for
 from agents.study.reference import (
     keepable,
     load_or_compute_reference,
+    partial_path,
     read_measured_csv,
     reference_path,
 )
@@ -209,9 +210,13 @@ def run_study(
             *(("reference", lesion) for lesion in waiting),
             *(("cell", cell) for cell in cells if cell.level >= spec.reference_level),
         ]
+        resuming = sum(
+            partial_path(reference_path(spec, scene, lesion)).exists() for lesion in waiting
+        )
         log(
             f"study: {len(cells)} cells to run, {len(done)} already in {results_path}; "
             f"{len(waiting)} references to compute"
+            + (f" ({resuming} resuming from saved progress)" if resuming else "")
         )
         computed = 0
         bar = _progress_bar(len(tasks), progress)
@@ -356,6 +361,11 @@ def _log_reference(
     log(
         f"reference lesion {lesion} ({level_label(spec.reference_level)}): "
         + (f"computed in {record['wall_s']:.1f} s" if fresh else "cached")
+        + (
+            " (resumed after depth " + ", ".join(map(str, record["resumed_after"])) + ")"
+            if fresh and record.get("resumed_after")
+            else ""
+        )
         + (
             f"; it stopped at step {found['step']} ({found['kind']}: {found['detail']}), "
             f"so it holds {len(record['tracked_m'])} of {len(spec.depths_m)} depths"
