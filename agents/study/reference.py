@@ -211,8 +211,9 @@ def compute_reference(
 
     With ``progress_path`` it saves its progress there after each depth and, if it finds
     progress saved there, resumes from it: on the 176,506-tet level a reference takes an
-    hour or more, and a killed study then loses at most one depth of it. ``wall_s`` counts
-    every run's time; ``resumed_after`` lists the depths (counted from 1) it resumed after.
+    hour or more, and a killed study then loses at most one depth of it. ``wall_s`` is the
+    compute behind the result: each earlier run's time up to its last saved depth, plus this
+    run's; ``resumed_after`` lists the depths (counted from 1) it resumed after.
     The file is removed once the reference is complete. A resumed reference agrees with an
     uninterrupted one to the solver tolerance (the kept factorisation is rebuilt)."""
     started = time.perf_counter()
