@@ -225,6 +225,27 @@ def test_volume_floor_lifts_a_crushed_tet(start: float) -> None:
     np.testing.assert_array_equal(support, 0.0)
 
 
+def test_volume_floor_lifts_two_crushed_neighbours_together() -> None:
+    """Two tets sharing a face, both crushed to det F = 0.03: lifted one at a time, the
+    second's lift pushes the shared face back into the first (which the single pass of the
+    past left at 0.048); the joint projection lifts both to the floor in one call, keeping
+    the centroid (equal masses)."""
+    rest = np.array([[0.0, 0, 1e-3], [0, 0, 0], [1e-3, 0, 0], [0, 1e-3, 0], [0, 0, -1e-3]])
+    tets = np.array([[0, 1, 2, 3], [4, 1, 3, 2]])
+    rest_edges = np.stack([(rest[t[1:]] - rest[t[0]]).T for t in tets])
+    inv_det = 1.0 / np.linalg.det(rest_edges)
+    x = rest.copy()
+    x[[0, 4], 2] *= 0.03
+    centroid = x.mean(axis=0)
+    support = np.zeros((5, 3))
+    inv_mass = np.full(5, 1e3)
+    dm_inv = np.linalg.inv(rest_edges)
+    assert pbd._enforce_volume_floor(x, inv_mass, tets, dm_inv, inv_det, 0.1, support) >= 2
+    ratios = [np.linalg.det((x[t[1:]] - x[t[0]]).T) * inv_det[i] for i, t in enumerate(tets)]
+    assert all(0.1 <= ratio < 0.11 for ratio in ratios), ratios
+    np.testing.assert_allclose(x.mean(axis=0), centroid, atol=1e-15)
+
+
 def test_volume_floor_leaves_other_tets_and_counts_fixed_node_support() -> None:
     x, inv_mass, tets, dm_inv, inv_det = _one_tet(0.5)
     before = x.copy()
