@@ -246,6 +246,26 @@ def test_volume_floor_lifts_two_crushed_neighbours_together() -> None:
     np.testing.assert_allclose(x.mean(axis=0), centroid, atol=1e-15)
 
 
+def test_volume_floor_lifts_more_tets_than_one_joint_block() -> None:
+    """Seventy separate crushed tets (more than one joint solve takes) all end at the floor,
+    and tets above it are left alone."""
+    x1, inv_mass1, _, dm_inv1, inv_det1 = _one_tet(0.02)
+    count = 70
+    x = np.concatenate([x1 + [0.01 * k, 0.0, 0.0] for k in range(count)])
+    x[-4:] = x1 + [0.01 * count, 0.0, 0.0]
+    x[-1, 2] = 1e-3  # the last one uncrushed
+    tets = np.arange(4 * count).reshape(count, 4)
+    before = x[-4:].copy()
+    support = np.zeros_like(x)
+    inv_mass = np.tile(inv_mass1, count)
+    dm_inv, inv_det = np.repeat(dm_inv1, count, axis=0), np.repeat(inv_det1, count)
+    assert count - 1 > pbd._FLOOR_BLOCK
+    pbd._enforce_volume_floor(x, inv_mass, tets, dm_inv, inv_det, 0.1, support)
+    ratios = [_volume_ratio(x[4 * k : 4 * k + 4]) for k in range(count - 1)]
+    assert min(ratios) >= 0.1 and max(ratios) < 0.11, (min(ratios), max(ratios))
+    np.testing.assert_array_equal(x[-4:], before)
+
+
 def test_volume_floor_leaves_other_tets_and_counts_fixed_node_support() -> None:
     x, inv_mass, tets, dm_inv, inv_det = _one_tet(0.5)
     before = x.copy()
