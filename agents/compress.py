@@ -98,15 +98,18 @@ def _check_depths(depths_m: list[float]) -> None:
 
 @dataclass(frozen=True)
 class CompressionProgress:
-    """Where a run stands just after recording a depth: what :func:`run_compression` needs
-    to resume it there.
+    """Where a run stands after a motion step or a recorded depth: what
+    :func:`run_compression` needs to resume it there.
 
     Attributes:
-        stops_done: the waypoints passed, the last of them the depth just recorded.
+        stops_done: the waypoints passed (held and recorded, where they have a depth).
         motion_done: the motion steps completed (for ``stability_percent``).
         steps: the step records so far.
         levels: the level records so far.
         model_state: the model's :meth:`~tissue.contact.base.ContactModel.saved_state`.
+        stop_motion_done: the motion steps taken towards the next waypoint (0 just after a
+            recorded depth).
+        level_status: the worst step status on the way to the next waypoint so far.
     """
 
     stops_done: int
@@ -114,6 +117,8 @@ class CompressionProgress:
     steps: list[dict[str, Any]]
     levels: list[dict[str, Any]]
     model_state: dict[str, NDArray[np.float64]]
+    stop_motion_done: int = 0
+    level_status: str = StepStatus.OK.value
 
 
 def run_compression(
@@ -126,7 +131,7 @@ def run_compression(
     observer: Callable[[ContactResult, NDArray[np.float64]], None] | None = None,
     max_settle_steps: int = MAX_SETTLE_STEPS,
     resume: CompressionProgress | None = None,
-    on_depth: Callable[[CompressionProgress], None] | None = None,
+    on_progress: Callable[[CompressionProgress], None] | None = None,
 ) -> dict[str, Any]:
     """Drive ``model`` through the waypoints; returns the JSON-ready record.
 
@@ -140,11 +145,12 @@ def run_compression(
     that depth's last motion step). ``observer(result, probe_position)`` is called after
     every step.
 
-    ``on_depth(progress)`` is called after each depth is recorded, with what ``resume``
-    needs to continue from there (a :class:`CompressionProgress`, the model's state included:
-    only models with :meth:`~tissue.contact.base.ContactModel.saved_state`). A resumed run
-    takes the same path from that depth on, its records continuing the saved ones; the
-    ``monitor`` is caught up on the saved steps first.
+    ``on_progress(progress)`` is called after each stable motion step and each recorded
+    depth, with what ``resume`` needs to continue from there (a :class:`CompressionProgress`,
+    the model's state included: only models with
+    :meth:`~tissue.contact.base.ContactModel.saved_state`). A resumed run takes the same path
+    from there on, its records continuing the saved ones; the ``monitor`` is caught up on the
+    saved steps first.
     """
     if not (np.isfinite(speed_m_s) and speed_m_s > 0):
         raise ConfigError(f"--speed must be a positive number of m/s; got {speed_m_s!r}")
@@ -167,19 +173,24 @@ def run_compression(
             )
         steps: list[dict[str, Any]] = []
         levels: list[dict[str, Any]] = []
-        motion_done, first_stop = 0, 0
+        motion_done, first_stop, first_step = 0, 0, 1
         position, quat = start.position.copy(), start.quat_wxyz.copy()
+        level_status = StepStatus.OK
     else:
-        if not 1 <= resume.stops_done <= len(stops):
+        if not 0 <= resume.stops_done <= len(stops) or resume.stop_motion_done < 0:
             raise ConfigError(
-                f"cannot resume after waypoint {resume.stops_done} of a path of {len(stops)}"
+                f"cannot resume after waypoint {resume.stops_done} (and "
+                f"{resume.stop_motion_done} steps) of a path of {len(stops)}"
             )
-        reached = stops[resume.stops_done - 1]
+        reached = stops[resume.stops_done - 1] if resume.stops_done else start
         position, quat = reached.position.copy(), reached.quat_wxyz.copy()
-        model.probe.set_pose(position, quat)
         model.load_state(resume.model_state)
         steps, levels = list(resume.steps), list(resume.levels)
         motion_done, first_stop = resume.motion_done, resume.stops_done
+        first_step = resume.stop_motion_done + 1
+        level_status = StepStatus(resume.level_status)
+        if first_step == 1:
+            model.probe.set_pose(position, quat)  # mid-way, the saved state holds the pose
         if monitor is not None:
             for done in steps:
                 monitor.observe(np.asarray(done["probe_pos"]), np.asarray(done["landmarks"]))
@@ -196,12 +207,17 @@ def run_compression(
                 instability = {"step": len(steps) - 1, "kind": found.kind, "detail": found.detail}
         return result
 
-    level_status = StepStatus.OK
+    def progress_now(stops_done: int, into: int, status: StepStatus) -> CompressionProgress:
+        return CompressionProgress(
+            stops_done, motion_done, list(steps), list(levels), model.saved_state(), into,
+            status.value,
+        )  # fmt: skip
+
     for index, (stop, count) in enumerate(zip(stops, counts, strict=True)):
         if index < first_stop:
             continue
         begin, begin_quat = position, quat
-        for i in range(1, count + 1):
+        for i in range(first_step if index == first_stop else 1, count + 1):
             fraction = i / count
             pose = begin + fraction * (stop.position - begin)
             result = take(pose, _slerp(begin_quat, stop.quat_wxyz, fraction))
@@ -209,6 +225,8 @@ def run_compression(
             if instability is not None:
                 break
             motion_done += 1
+            if on_progress is not None and i < count:
+                on_progress(progress_now(index, i, level_status))
         if instability is not None:
             break
         position, quat = stop.position.copy(), stop.quat_wxyz.copy()
@@ -225,12 +243,8 @@ def run_compression(
             motion_done -= 1  # the depth was reached but never held
             break
         levels.append(_level_record(result, stop.depth_m, model, level_status))
-        if on_depth is not None:
-            on_depth(
-                CompressionProgress(
-                    index + 1, motion_done, list(steps), list(levels), model.saved_state()
-                )
-            )
+        if on_progress is not None:
+            on_progress(progress_now(index + 1, 0, StepStatus.OK))
         if progress:
             print(
                 f"depth {stop.depth_m * 1e3:6.2f} mm: force {levels[-1]['force_normal_n']:8.4f} N, "

@@ -121,13 +121,14 @@ def test_study_directory_carries_its_references_to_a_fresh_cache(
     assert not (tmp_path / "fresh-cache" / "references").exists()
 
 
-def test_a_killed_reference_resumes_from_its_last_depth(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+@pytest.mark.parametrize("into_leg", [0, 2])
+def test_a_killed_reference_resumes_where_it_saved_its_progress(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, into_leg: int
 ) -> None:
-    """A reference killed after its second depth (here: the process ending as it saved that
-    progress) resumes from there on the next run, taking only the remaining steps, and ends
-    where an uninterrupted one does, to the Newton tolerance. Once complete, its progress
-    file is gone."""
+    """A reference killed as it saves its progress (here: at its second depth, or two steps
+    on towards the third) resumes from there on the next run, taking only the remaining
+    steps, and ends where an uninterrupted one does, to the Newton tolerance. Once complete,
+    its progress file is gone."""
     import agents.study.reference as reference
     from agents.study.cell import scene_for
     from agents.study.runner import _log_reference
@@ -153,11 +154,12 @@ def test_a_killed_reference_resumes_from_its_last_depth(
 
     def save_then_die(path, progress, *args):
         save(path, progress, *args)
-        if progress.stops_done == 2:
+        if (progress.stops_done, progress.stop_motion_done) == (2, into_leg):
             raise KilledError
 
     progress_path = tmp_path / "reference-x.partial.npz"
     monkeypatch.setattr(reference, "_save_progress", save_then_die)
+    monkeypatch.setattr(reference, "_PROGRESS_EVERY_S", 0.0)  # save after every step
     taken.clear()
     with pytest.raises(KilledError):
         reference.compute_reference(spec, scene, 1, progress_path)
@@ -170,16 +172,16 @@ def test_a_killed_reference_resumes_from_its_last_depth(
     resumed, computed = reference.load_or_compute_reference(spec, scene, 1)
     assert computed and (tmp_path / "reference-x.json").is_file()
     assert not progress_path.exists()
-    assert resumed["resumed_after"] == [2] and whole["resumed_after"] == []
+    assert resumed["resumed_after"] == [before_kill] and whole["resumed_after"] == []
     assert resumed["level_status"] == whole["level_status"] == ["ok"] * 3
-    # Only the third depth's steps are taken again.
+    # Only the steps after the kill are taken again.
     assert len(taken) > 0 and before_kill + len(taken) == whole_steps, (before_kill, taken)
     errors = np.linalg.norm(np.subtract(resumed["tracked_m"], whole["tracked_m"]), axis=1)
     assert errors.max() < 1e-6, errors
     np.testing.assert_allclose(resumed["force_normal_n"], whole["force_normal_n"], rtol=1e-4)
     lines: list[str] = []
     _log_reference(spec, 1, resumed, True, lines.append)
-    assert "resumed after depth 2" in lines[0], lines
+    assert f"resumed after step {before_kill}" in lines[0], lines
 
 
 def test_killed_study_resumes_without_redoing_cells(tmp_path: Path) -> None:

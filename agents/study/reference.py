@@ -162,6 +162,10 @@ def partial_path(path: Path) -> Path:
     return path.with_name(path.stem + ".partial.npz")
 
 
+#: How often a reference saves its progress between depths [s] (see compute_reference).
+_PROGRESS_EVERY_S = 120.0
+
+
 def _save_progress(
     path: Path, progress: CompressionProgress, elapsed_s: float, resumed: list[int]
 ) -> None:
@@ -169,6 +173,8 @@ def _save_progress(
     path.parent.mkdir(parents=True, exist_ok=True)
     record = {
         "stops_done": progress.stops_done,
+        "stop_motion_done": progress.stop_motion_done,
+        "level_status": progress.level_status,
         "motion_done": progress.motion_done,
         "steps": progress.steps,
         "levels": progress.levels,
@@ -196,8 +202,9 @@ def _load_progress(path: Path) -> tuple[CompressionProgress, float, list[int]] |
                 if name.startswith("state_")
             }
         progress = CompressionProgress(
-            record["stops_done"], record["motion_done"], record["steps"], record["levels"], state
-        )
+            record["stops_done"], record["motion_done"], record["steps"], record["levels"], state,
+            record["stop_motion_done"], record["level_status"],
+        )  # fmt: skip
         return progress, float(record["elapsed_s"]), list(record["resumed_after"])
     except (OSError, ValueError, KeyError, TypeError):
         return None
@@ -209,18 +216,20 @@ def compute_reference(
     """Run the converged LM experiment for ``lesion`` on the reference level, of the
     scene's :func:`reference_kind`.
 
-    With ``progress_path`` it saves its progress there after each depth and, if it finds
-    progress saved there, resumes from it: on the 176,506-tet level a reference takes an
-    hour or more, and a killed study then loses at most one depth of it. ``wall_s`` is the
+    With ``progress_path`` it saves its progress there after each depth and every
+    :data:`_PROGRESS_EVERY_S` between (after a step), and, if it finds progress saved there,
+    resumes from it: on the 176,506-tet level a reference takes one to several hours (one 1 mm
+    increment of lesions 2 and 3 needs relaxing, at 1/16 mm), and a killed study loses at
+    most the last minutes of it. ``wall_s`` is the
     compute behind the result: each earlier run's time up to its last saved depth, plus this
-    run's; ``resumed_after`` lists the depths (counted from 1) it resumed after.
+    run's; ``resumed_after`` lists how many steps had been taken at each resumption.
     The file is removed once the reference is complete. A resumed reference agrees with an
     uninterrupted one to the solver tolerance (the kept factorisation is rebuilt)."""
     started = time.perf_counter()
     saved = _load_progress(progress_path) if progress_path is not None else None
     resume, before_s, resumed = (None, 0.0, []) if saved is None else saved
     if resume is not None:
-        resumed = [*resumed, resume.stops_done]
+        resumed = [*resumed, len(resume.steps)]
     kind = reference_kind(scene)
     mesh = scene.mesh(spec.reference_level)
     shape = parse_probe_spec("face")
@@ -245,9 +254,17 @@ def compute_reference(
     # holds of 50 and 250 steps); dynamic: the cells' speed and hold.
     speed = REFERENCE_INCREMENT_M / model.dt if kind == QUASI_STATIC else spec.speed_m_s
 
+    last_saved = time.perf_counter()
+
     def keep(progress: CompressionProgress) -> None:
+        # Every depth, and mid-way at most every _PROGRESS_EVERY_S (a 176k state is ~2 MB).
+        nonlocal last_saved
+        now = time.perf_counter()
+        if progress.stop_motion_done and now - last_saved < _PROGRESS_EVERY_S:
+            return
         assert progress_path is not None
-        _save_progress(progress_path, progress, before_s + time.perf_counter() - started, resumed)
+        _save_progress(progress_path, progress, before_s + now - started, resumed)
+        last_saved = now
 
     run = run_compression(
         model,
@@ -257,7 +274,7 @@ def compute_reference(
         monitor=monitor,
         max_settle_steps=spec.settle_steps,
         resume=resume,
-        on_depth=keep if progress_path is not None else None,
+        on_progress=keep if progress_path is not None else None,
     )
     assert mesh.landmarks is not None
     tracked = mesh.landmarks.names.index(scene.landmark_name(lesion))
