@@ -220,7 +220,8 @@ def compute_reference(
     :data:`_PROGRESS_EVERY_S` between (after a step), and, if it finds progress saved there,
     resumes from it: on the 176,506-tet level a reference takes one to several hours (one 1 mm
     increment of lesions 2 and 3 needs relaxing, at 1/16 mm), and a killed study loses at
-    most the last minutes of it. ``wall_s`` is the
+    most the step in flight and the two minutes before it (one relaxed step can itself
+    take an hour there). ``wall_s`` is the
     compute behind the result: each earlier run's time up to its last saved depth, plus this
     run's; ``resumed_after`` lists how many steps had been taken at each resumption.
     The file is removed once the reference is complete. A resumed reference agrees with an

@@ -3,9 +3,10 @@ locally or on Ray.
 
 ``results.jsonl`` in the output directory gets one line per finished cell, appended and
 flushed as it finishes; a rerun with the same directory skips the cells it holds, so a
-killed study loses at most the cells in flight, and of a reference in flight the last few
-minutes (a reference saves its progress beside its cache file every two minutes, and a
-rerun resumes it: see :func:`~agents.study.reference.compute_reference`). The references run in
+killed study loses at most the cells in flight, and of a reference in flight its step in
+flight and the two minutes before (a reference saves its progress beside its cache file
+after a step every two minutes, and a rerun resumes it: see
+:func:`~agents.study.reference.compute_reference`). The references run in
 the same queue as the cells, before the cells on the reference level: a cell finishing
 before its lesion's reference is appended with ``"truth": "pending"`` and its errors are
 filled in, the file rewritten atomically, once the references are known (so a reference
