@@ -221,11 +221,11 @@ def compute_reference(
     resumes from it: on the 176,506-tet level a reference takes one to several hours (one 1 mm
     increment of lesions 2 and 3 needs relaxing, at 1/16 mm), and a killed study loses at
     most the step in flight and the two minutes before it (one relaxed step can itself
-    take an hour there). ``wall_s`` is the
-    compute behind the result: each earlier run's time up to its last saved depth, plus this
-    run's; ``resumed_after`` lists how many steps had been taken at each resumption.
-    The file is removed once the reference is complete. A resumed reference agrees with an
-    uninterrupted one to the solver tolerance (the kept factorisation is rebuilt)."""
+    take an hour there). ``wall_s`` is the compute behind the result: each earlier run's
+    time up to its last save, plus this run's; ``resumed_after`` lists how many steps had
+    been taken at each resumption. The file is removed once the reference is complete. A
+    resumed reference agrees with an uninterrupted one to the solver tolerance (the kept
+    factorisation is rebuilt)."""
     started = time.perf_counter()
     saved = _load_progress(progress_path) if progress_path is not None else None
     resume, before_s, resumed = (None, 0.0, []) if saved is None else saved
@@ -258,7 +258,7 @@ def compute_reference(
     last_saved = time.perf_counter()
 
     def keep(progress: CompressionProgress) -> None:
-        # Every depth, and mid-way at most every _PROGRESS_EVERY_S (a 176k state is ~2 MB).
+        # Every depth, and mid-way at most every _PROGRESS_EVERY_S (a 176k save is 1.6 MB).
         nonlocal last_saved
         now = time.perf_counter()
         if progress.stop_motion_done and now - last_saved < _PROGRESS_EVERY_S:
