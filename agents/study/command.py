@@ -37,6 +37,11 @@ def add_study_arguments(study: argparse.ArgumentParser) -> None:
     )
     study.add_argument("--config", default="paper,robust", help="paper | robust | paper,robust")
     study.add_argument("--reference-level", default=None, help="level of the converged reference")
+    study.add_argument(
+        "--reference-kind",
+        default="dynamic",
+        help="dynamic (the cells' own experiment, default) | quasi-static (1 mm increments)",
+    )
     study.add_argument("--measured", type=Path, default=None, help="CSV of measured positions")
     study.add_argument("--speed", type=float, default=0.01, help="probe speed [m/s]")
     study.add_argument(
@@ -97,6 +102,7 @@ def spec_from_args(args: argparse.Namespace) -> StudySpec:
         configs=tuple(_split(args.config, "config")),  # type: ignore[arg-type]
         depths_m=depths,
         reference_level=reference,
+        reference_kind=args.reference_kind,
         speed_m_s=args.speed,
         settle_steps=args.settle_steps,
         measured_csv=args.measured,

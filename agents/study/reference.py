@@ -4,42 +4,41 @@ The published data holds no measured lesion positions under compression, so by d
 each lesion's tracked point is scored against a reference computed once per scene, lesion
 and reference level and cached on disk, with Lagrange-multiplier contact (exact, no
 penetration) and Newton to a relative residual of 1e-5, along the same probe path as the
-cells. It is one of two kinds, chosen by the scene (:func:`reference_kind`):
+cells. It is one of two kinds (``StudySpec.reference_kind``, ``--reference-kind``):
 
-* **quasi-static** (the built-in phantom): static equilibrium at every probe pose, the probe
-  advanced in 1 mm increments. Settled cells are static equilibria too, so the two compare
-  like for like, and it is the cheaper of the two on the finest level.
-* **dynamic** (the published scene): the cells' own experiment -- the probe driven at the
-  study's speed with the cells' time step, damping and hold at each depth -- on the
-  reference level, with Newton to the tight tolerance.
+* **dynamic** (the default): the cells' own experiment -- the probe driven at the study's
+  speed with the cells' time step, damping and hold at each depth -- on the reference
+  level, with Newton to the tight tolerance. What it differs from a cell in is then only
+  what eq. (12) is meant to measure: the mesh and the solver.
+* **quasi-static**: static equilibrium at every probe pose, the probe advanced in 1 mm
+  increments (2 mm put four of ten lesions on another equilibrium at the 4,126-tet level,
+  0.47-2.03 mm away, where 1, 0.5 and 0.2 mm increments agree to 1e-6 m).
 
-Why two: under a deep press the phantom has more than one static equilibrium for the same
-probe pose (the tissue can settle shifted sideways under the frictionless probe), and which
-one a run ends on depends on the path it took to get there.
-
-On the built-in phantom's straight presses the quasi-static path lands where the dynamic one
-does, provided its increments are small: measured on the 4,126-tet level, all ten lesions,
-2 mm increments put four lesions' tracked points on another equilibrium at one or two depths,
-0.47-2.03 mm from where 1 mm, 0.5 mm and 0.2 mm increments all agree (to 1e-6 m), the force
-differing by up to 3 % (lesion 1 at 20 mm: 3.192 N against 3.294 N); the probe's own path
-at 0.2 mm per step, settled long enough, reaches the latter too (within 0.08 mm). 1 mm
-costs about 1.3 x the time of 2 mm.
-
-On the published scene's real poses, which tilt the probe as well as press, it does not:
-lesion 1 on the scene's own mesh (9,295 tets), robust LM driven dynamically is 0.012 / 2.99 /
-3.26 / 7.51 mm from the quasi-static solution at the four poses (forces 1.088 / 2.232 / 2.676
-/ 3.650 N against 1.087 / 2.614 / 3.102 / 1.772 N), with the quasi-static one converged in
-its increments (1, 0.5 and 0.25 mm agree to 1e-6 m). Both are equilibria; the cells follow
-the dynamic path, so that is the one to score them against: against the dynamic reference
-on the same mesh the robust LM cell is within 0.001 mm at all four poses, what the solver
-tolerance leaves.
+Why two, and why dynamic by default. Under a deep press the phantom has more than one
+static equilibrium for the same probe pose (the tissue can settle shifted sideways under the
+frictionless probe), and which one a run ends on depends on the path it took. On the
+published scene's real poses, which tilt the probe as well as press, the quasi-static path
+lands elsewhere: lesion 1 on the scene's own mesh (9,295 tets), robust LM driven
+dynamically is 0.012 / 2.99 / 3.26 / 7.51 mm from the quasi-static solution at the four
+poses (forces 1.088 / 2.232 / 2.676 / 3.650 N against 1.087 / 2.614 / 3.102 / 1.772 N), with
+the quasi-static one converged in its increments (1, 0.5 and 0.25 mm agree to 1e-6 m); against
+the dynamic reference on the same mesh the robust LM cell is within 0.001 mm at all four
+poses, what the solver tolerance leaves. On the built-in phantom's straight presses the two
+agree (lesion 2 at 12,861 tets: 0.008 / 0.036 / 0.058 / 0.057 mm apart, forces within
+0.4 %), but the quasi-static path is the dearer one on fine meshes, where a deep press
+reaches limits of the static path that a 1 mm increment must be relaxed across (at
+176,506 tets neither lesion 2's nor lesion 3's quasi-static reference had reached its first
+depth after two hours of a loaded machine, stuck in the 9 -> 10 mm increment; lesion 1's
+whole quasi-static reference took 3,485 s), where the dynamic one's inertia keeps every step
+definite. Measured at 12,861 tets, lesion 2, one run each on a loaded
+machine: dynamic 65 s, quasi-static 139 s.
 
 The dynamic reference holds as long as the cells (``StudySpec.settle_steps``), so both stop
-at the same moment of the experiment. At lesion 1's fourth pose that is not yet rest: the
-tissue creeps sideways under the frictionless probe for another 28 s (1,660 steps in all
-before no node moves faster than 0.01 mm/s; the force falls from 3.65 to 3.24 N and the
-tracked point moves 1.35 mm). A study that wants the resting state there passes a longer
-``--settle-steps``, which both then follow.
+at the same moment of the experiment. At the published scene's lesion 1, fourth pose, that
+is not yet rest: the tissue creeps sideways under the frictionless probe for another 28 s
+(1,660 steps in all before no node moves faster than 0.01 mm/s; the force falls from 3.65 to
+3.24 N and the tracked point moves 1.35 mm). A study that wants the resting state there
+passes a longer ``--settle-steps``, which both then follow.
 
 Measured positions (``--measured FILE.csv``) replace it. The CSV has a header and one row
 per lesion and depth::
@@ -68,7 +67,7 @@ import numpy as np
 from agents.compress import SETTLED_SPEED_M_S, CompressionProgress, run_compression
 from agents.study.cell import STUDY_LIMITS
 from agents.study.scenes import StudyScene
-from agents.study.spec import StudySpec, level_label
+from agents.study.spec import ReferenceKind, StudySpec, level_label
 from tissue.contact.base import ContactMethod
 from tissue.contact.lagrange import LagrangeParams
 from tissue.contact.stability import StabilityMonitor
@@ -81,8 +80,8 @@ from tissue.simulator import SimulationConfig
 #: completes references that stalled or diverged before and were cached as such).
 REFERENCE_VERSION = 5
 #: The two kinds of reference (see the module docstring).
-QUASI_STATIC = "quasi-static"
-DYNAMIC = "dynamic"
+QUASI_STATIC = ReferenceKind.QUASI_STATIC.value
+DYNAMIC = ReferenceKind.DYNAMIC.value
 REFERENCE_TOLERANCE = 1e-5
 #: The probe's advance per quasi-static solve [m] (see the module docstring for why not 2 mm).
 REFERENCE_INCREMENT_M = 0.001
@@ -93,10 +92,9 @@ REFERENCE_MAX_ITERATIONS = 60
 REFERENCE_LIMITS = replace(STUDY_LIMITS, step_timeout_s=3600.0)
 
 
-def reference_kind(scene: StudyScene) -> str:
-    """:data:`QUASI_STATIC` for the built-in phantom, :data:`DYNAMIC` for the published
-    scene (a directory laid out like it)."""
-    return QUASI_STATIC if scene.directory is None else DYNAMIC
+def reference_kind(spec: StudySpec) -> str:
+    """:data:`DYNAMIC` or :data:`QUASI_STATIC`, as ``spec`` asks."""
+    return spec.reference_kind.value
 
 
 def reference_key(spec: StudySpec, scene: StudyScene, lesion: int) -> str:
@@ -118,7 +116,7 @@ def reference_key(spec: StudySpec, scene: StudyScene, lesion: int) -> str:
         f"tol{REFERENCE_TOLERANCE:g}",
         f"inc{REFERENCE_INCREMENT_M:g}",
     ]
-    if reference_kind(scene) == DYNAMIC:
+    if reference_kind(spec) == DYNAMIC:
         parts[-1] = (
             f"dynamic-speed{spec.speed_m_s:g}-dt{SimulationConfig().tissue_dt:g}"
             f"-hold{spec.settle_steps}-{SETTLED_SPEED_M_S:g}"
@@ -214,24 +212,24 @@ def compute_reference(
     spec: StudySpec, scene: StudyScene, lesion: int, progress_path: Path | None = None
 ) -> dict[str, Any]:
     """Run the converged LM experiment for ``lesion`` on the reference level, of the
-    scene's :func:`reference_kind`.
+    spec's :func:`reference_kind`.
 
     With ``progress_path`` it saves its progress there after each depth and every
     :data:`_PROGRESS_EVERY_S` between (after a step), and, if it finds progress saved there,
-    resumes from it: on the 176,506-tet level a reference takes one to several hours (one 1 mm
-    increment of lesions 2 and 3 needs relaxing, at 1/16 mm), and a killed study loses at
-    most the step in flight and the two minutes before it (one relaxed step can itself
-    take an hour there). ``wall_s`` is the compute behind the result: each earlier run's
-    time up to its last save, plus this run's; ``resumed_after`` lists how many steps had
-    been taken at each resumption. The file is removed once the reference is complete. A
-    resumed reference agrees with an uninterrupted one to the solver tolerance (the kept
-    factorisation is rebuilt)."""
+    resumes from it: on the 176,506-tet level a reference takes the best part of an hour
+    (a quasi-static one of lesions 2 and 3, hours: one 1 mm increment needs relaxing, at
+    1/16 mm), and a killed study loses at most the step in flight and the two minutes before
+    it (one relaxed quasi-static step can itself take an hour there). ``wall_s`` is the
+    compute behind the result: each earlier run's time up to its last save, plus this run's;
+    ``resumed_after`` lists how many steps had been taken at each resumption. The file is
+    removed once the reference is complete. A resumed reference agrees with an uninterrupted
+    one to the solver tolerance (the kept factorisation is rebuilt)."""
     started = time.perf_counter()
     saved = _load_progress(progress_path) if progress_path is not None else None
     resume, before_s, resumed = (None, 0.0, []) if saved is None else saved
     if resume is not None:
         resumed = [*resumed, len(resume.steps)]
-    kind = reference_kind(scene)
+    kind = reference_kind(spec)
     mesh = scene.mesh(spec.reference_level)
     shape = parse_probe_spec("face")
     config = SimulationConfig(

@@ -60,6 +60,23 @@ class StudyConfig(Choice):
         return "configuration"
 
 
+class ReferenceKind(Choice):
+    """How the converged reference reaches each depth (see :mod:`agents.study.reference`).
+
+    ``dynamic`` (the default): the cells' own experiment -- the probe driven at the study's
+    speed and time step, held at each depth as long as the cells -- on the reference level,
+    with Newton to a tight tolerance. ``quasi-static``: static equilibrium at every probe
+    pose, the probe advanced in 1 mm increments.
+    """
+
+    DYNAMIC = "dynamic"
+    QUASI_STATIC = "quasi-static"
+
+    @classmethod
+    def noun(cls) -> str:
+        return "reference kind"
+
+
 def level_label(level: int) -> str:
     """How a level is written in tables: ``published`` or its target tet count."""
     return "published" if level == NATIVE_LEVEL else f"{level:,}"
@@ -103,6 +120,7 @@ class StudySpec:
         depths_m: depths past first contact [m] (synthetic scene only; the published scene's
             poses fix its own), increasing.
         reference_level: the level the converged reference runs on.
+        reference_kind: how the reference reaches each depth (:class:`ReferenceKind`).
         speed_m_s: probe speed [m/s].
         settle_steps: the most steps a cell holds still at each depth to settle (see
             :data:`STUDY_SETTLE_STEPS`).
@@ -119,12 +137,14 @@ class StudySpec:
     speed_m_s: float = PAPER_SPEED_M_S
     measured_csv: Path | None = field(default=None)
     settle_steps: int = STUDY_SETTLE_STEPS
+    reference_kind: ReferenceKind = ReferenceKind.DYNAMIC
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "methods", tuple(ContactMethod.parse(m) for m in self.methods))
         object.__setattr__(self, "configs", tuple(StudyConfig.parse(c) for c in self.configs))
         object.__setattr__(self, "levels", tuple(parse_study_level(v) for v in self.levels))
         object.__setattr__(self, "reference_level", parse_study_level(self.reference_level))
+        object.__setattr__(self, "reference_kind", ReferenceKind.parse(self.reference_kind))
         for name in ("methods", "levels", "configs"):
             values = getattr(self, name)
             if not values:
@@ -181,6 +201,7 @@ class StudySpec:
             "configs": [c.value for c in self.configs],
             "depths_m": list(self.depths_m),
             "reference_level": self.reference_level,
+            "reference_kind": self.reference_kind.value,
             "speed_m_s": self.speed_m_s,
             "settle_steps": self.settle_steps,
             "measured_csv": None if self.measured_csv is None else str(self.measured_csv),
