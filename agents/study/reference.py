@@ -24,14 +24,15 @@ poses (forces 1.088 / 2.232 / 2.676 / 3.650 N against 1.087 / 2.614 / 3.102 / 1.
 the quasi-static one converged in its increments (1, 0.5 and 0.25 mm agree to 1e-6 m); against
 the dynamic reference on the same mesh the robust LM cell is within 0.001 mm at all four
 poses, what the solver tolerance leaves. On the built-in phantom's straight presses the two
-agree (lesion 2 at 12,861 tets: 0.008 / 0.036 / 0.058 / 0.057 mm apart, forces within
-0.4 %), but the quasi-static path is the dearer one on fine meshes, where a deep press
-reaches limits of the static path that a 1 mm increment must be relaxed across (at
-176,506 tets neither lesion 2's nor lesion 3's quasi-static reference had reached its first
-depth after two hours of a loaded machine, stuck in the 9 -> 10 mm increment; lesion 1's
-whole quasi-static reference took 3,485 s), where the dynamic one's inertia keeps every step
-definite. Measured at 12,861 tets, lesion 2, one run each on a loaded
-machine: dynamic 65 s, quasi-static 139 s.
+mostly agree -- lesion 2 at 12,861 tets: 0.008 / 0.036 / 0.058 / 0.057 mm apart at the four
+depths, forces within 0.4 %; lesion 3 at 26,220 tets: 0.007 / 0.013 / 0.028 / 0.675 mm,
+forces within 2 % -- but the quasi-static path is the dearer one, the more so on fine meshes,
+where a deep press reaches limits of the static path that a 1 mm increment must be relaxed
+across (at 176,506 tets neither lesion 2's nor lesion 3's quasi-static reference had reached
+its first depth after two hours of a loaded machine, stuck in the 9 -> 10 mm increment;
+lesion 1's whole quasi-static reference took 3,485 s), where the dynamic one's inertia keeps
+every step definite. One run each on a loaded machine: 12,861 tets, lesion 2, dynamic 65 s
+against quasi-static 139 s; 26,220 tets, lesion 3, 242 s against 688 s.
 
 The dynamic reference holds as long as the cells (``StudySpec.settle_steps``), so both stop
 at the same moment of the experiment. At the published scene's lesion 1, fourth pose, that
