@@ -98,7 +98,7 @@ def _check_depths(depths_m: list[float]) -> None:
 
 @dataclass(frozen=True)
 class CompressionProgress:
-    """Where a run stands after a motion step or a recorded depth: what
+    """Where a run stands after a motion step, a step of a hold or a recorded depth: what
     :func:`run_compression` needs to resume it there.
 
     Attributes:
@@ -110,6 +110,7 @@ class CompressionProgress:
         stop_motion_done: the motion steps taken towards the next waypoint (0 just after a
             recorded depth).
         level_status: the worst step status on the way to the next waypoint so far.
+        settle_done: the steps held still at the next waypoint so far (its motion done).
     """
 
     stops_done: int
@@ -119,6 +120,7 @@ class CompressionProgress:
     model_state: dict[str, NDArray[np.float64]]
     stop_motion_done: int = 0
     level_status: str = StepStatus.OK.value
+    settle_done: int = 0
 
 
 def run_compression(
@@ -145,9 +147,9 @@ def run_compression(
     that depth's last motion step). ``observer(result, probe_position)`` is called after
     every step.
 
-    ``on_progress(progress)`` is called after each stable motion step and each recorded
-    depth, with what ``resume`` needs to continue from there (a :class:`CompressionProgress`,
-    the model's state included: only models with
+    ``on_progress(progress)`` is called after each stable motion step, each step of a hold
+    but its last and each recorded depth, with what ``resume`` needs to continue from there
+    (a :class:`CompressionProgress`, the model's state included: only models with
     :meth:`~tissue.contact.base.ContactModel.saved_state`). A resumed run takes the same path
     from there on, its records continuing the saved ones; the ``monitor`` is caught up on the
     saved steps first.
@@ -173,11 +175,15 @@ def run_compression(
             )
         steps: list[dict[str, Any]] = []
         levels: list[dict[str, Any]] = []
-        motion_done, first_stop, first_step = 0, 0, 1
+        motion_done, first_stop, first_step, first_settle = 0, 0, 1, 0
         position, quat = start.position.copy(), start.quat_wxyz.copy()
         level_status = StepStatus.OK
     else:
-        if not 0 <= resume.stops_done <= len(stops) or resume.stop_motion_done < 0:
+        if (
+            not 0 <= resume.stops_done <= len(stops)
+            or resume.stop_motion_done < 0
+            or resume.settle_done < 0
+        ):
             raise ConfigError(
                 f"cannot resume after waypoint {resume.stops_done} (and "
                 f"{resume.stop_motion_done} steps) of a path of {len(stops)}"
@@ -188,6 +194,7 @@ def run_compression(
         steps, levels = list(resume.steps), list(resume.levels)
         motion_done, first_stop = resume.motion_done, resume.stops_done
         first_step = resume.stop_motion_done + 1
+        first_settle = resume.settle_done
         level_status = StepStatus(resume.level_status)
         if first_step == 1:
             model.probe.set_pose(position, quat)  # mid-way, the saved state holds the pose
@@ -207,10 +214,12 @@ def run_compression(
                 instability = {"step": len(steps) - 1, "kind": found.kind, "detail": found.detail}
         return result
 
-    def progress_now(stops_done: int, into: int, status: StepStatus) -> CompressionProgress:
+    def progress_now(
+        stops_done: int, into: int, status: StepStatus, settled: int = 0
+    ) -> CompressionProgress:
         return CompressionProgress(
             stops_done, motion_done, list(steps), list(levels), model.saved_state(), into,
-            status.value,
+            status.value, settled,
         )  # fmt: skip
 
     for index, (stop, count) in enumerate(zip(stops, counts, strict=True)):
@@ -232,13 +241,19 @@ def run_compression(
         position, quat = stop.position.copy(), stop.quat_wxyz.copy()
         if stop.depth_m is None:
             continue
-        for _ in range(max_settle_steps):
+        # A hold resumed part-way goes on from its saved step (it was saved only before its
+        # last, so at least one is left: ``result`` is this hold's).
+        held = first_settle if index == first_stop else 0
+        for settled in range(held + 1, max_settle_steps + 1):
             previous = model.node_positions.copy()
             result = take(position, quat)
             level_status = worst(level_status, result.status)
             speed = float(np.max(np.abs(model.node_positions - previous))) / dt
             if speed < SETTLED_SPEED_M_S or result.status.is_failure or instability is not None:
                 break
+            if on_progress is not None and settled < max_settle_steps:
+                # On the finest level a hold is minutes of a reference's compute.
+                on_progress(progress_now(index, count, level_status, settled))
         if instability is not None:
             motion_done -= 1  # the depth was reached but never held
             break

@@ -121,14 +121,14 @@ def test_study_directory_carries_its_references_to_a_fresh_cache(
     assert not (tmp_path / "fresh-cache" / "references").exists()
 
 
-@pytest.mark.parametrize("into_leg", [0, 2])
+@pytest.mark.parametrize("killed", ["at a depth", "into a leg", "into a hold"])
 def test_a_killed_reference_resumes_where_it_saved_its_progress(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, into_leg: int
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, killed: str
 ) -> None:
-    """A reference killed as it saves its progress (here: at its second depth, or two steps
-    on towards the third) resumes from there on the next run, taking only the remaining
-    steps, and ends where an uninterrupted one does, to the Newton tolerance. Once complete,
-    its progress file is gone."""
+    """A reference killed as it saves its progress (here: at its second depth, two steps
+    on towards the third, or three steps into the hold at the second) resumes from there on
+    the next run, taking only the remaining steps, and ends where an uninterrupted one does,
+    to the Newton tolerance. Once complete, its progress file is gone."""
     import agents.study.reference as reference
     from agents.study.cell import scene_for
     from agents.study.runner import _log_reference
@@ -152,9 +152,14 @@ def test_a_killed_reference_resumes_where_it_saved_its_progress(
     class KilledError(Exception):
         pass
 
+    where = {"at a depth": (2, 0, 0), "into a leg": (2, 2, 0), "into a hold": (1, None, 3)}
+    stops_done, motion_done, settle_done = where[killed]
+
     def save_then_die(path, progress, *args):
         save(path, progress, *args)
-        if (progress.stops_done, progress.stop_motion_done) == (2, into_leg):
+        if (progress.stops_done, progress.settle_done) == (stops_done, settle_done) and (
+            motion_done in (None, progress.stop_motion_done)
+        ):
             raise KilledError
 
     progress_path = tmp_path / "reference-x.partial.npz"

@@ -173,6 +173,7 @@ def _save_progress(
     record = {
         "stops_done": progress.stops_done,
         "stop_motion_done": progress.stop_motion_done,
+        "settle_done": progress.settle_done,
         "level_status": progress.level_status,
         "motion_done": progress.motion_done,
         "steps": progress.steps,
@@ -202,7 +203,7 @@ def _load_progress(path: Path) -> tuple[CompressionProgress, float, list[int]] |
             }
         progress = CompressionProgress(
             record["stops_done"], record["motion_done"], record["steps"], record["levels"], state,
-            record["stop_motion_done"], record["level_status"],
+            record["stop_motion_done"], record["level_status"], record.get("settle_done", 0),
         )  # fmt: skip
         return progress, float(record["elapsed_s"]), list(record["resumed_after"])
     except (OSError, ValueError, KeyError, TypeError):
