@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -161,6 +163,21 @@ def test_inverting_step_in_classic_law_is_reported_not_raised() -> None:
     assert result.status in (StepStatus.INVERTED, StepStatus.DIVERGED, StepStatus.SOLVER_FAILED)
     assert np.all(np.isfinite(result.positions))
     assert np.all(np.isfinite(sim.positions))
+
+
+def test_a_blown_up_step_is_reported_without_a_numpy_warning() -> None:
+    """Positions finite but astronomically far out (a paper-mode LM cell of the quick study
+    diverged so) are a divergence, said by the status alone: before, squaring them in the
+    blow-up check printed numpy's "overflow encountered in multiply" to the user."""
+    mesh = block_mesh((0.01, 0.01, 0.01), (2, 2, 2), fix="z=min")
+    sim = TissueSimulator(mesh, TissueMaterials(tissue=NeoHookean(E, NU)), SimulationConfig())
+    top = nodes_on_plane(mesh.nodes, "z=max")
+    sim.prescribe(top, mesh.nodes[top] + [0.0, 0.0, 1e156])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        result = sim.step()
+    assert result.status is StepStatus.DIVERGED
+    assert np.all(np.isfinite(result.positions)) and np.all(np.isfinite(sim.positions))
 
 
 def test_robust_mode_survives_the_same_violent_step() -> None:
