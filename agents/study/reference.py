@@ -29,8 +29,8 @@ depths, forces within 0.4 %; lesion 3 at 26,220 tets: 0.007 / 0.013 / 0.028 / 0.
 forces within 2 % -- but the quasi-static path is the dearer one, the more so on fine meshes,
 where a deep press reaches limits of the static path that a 1 mm increment must be relaxed
 across (at 176,506 tets neither lesion 2's nor lesion 3's quasi-static reference had reached
-its first depth after two hours of a loaded machine, stuck in the 9 -> 10 mm increment;
-lesion 1's whole quasi-static reference took 3,485 s), where the dynamic one's inertia keeps
+its first depth after two hours of a loaded machine, stuck in one increment of the first
+leg; lesion 1's whole quasi-static reference took 3,485 s), where the dynamic one's inertia keeps
 every step definite. One run each on a loaded machine: 12,861 tets, lesion 2, dynamic 65 s
 against quasi-static 139 s; 26,220 tets, lesion 3, 242 s against 688 s.
 
@@ -218,8 +218,8 @@ def compute_reference(
 
     With ``progress_path`` it saves its progress there after each depth and every
     :data:`_PROGRESS_EVERY_S` between (after a step), and, if it finds progress saved there,
-    resumes from it: on the 176,506-tet level a reference takes the best part of an hour
-    (a quasi-static one of lesions 2 and 3, hours: one 1 mm increment needs relaxing, at
+    resumes from it: on the 176,506-tet level a reference takes about an hour (a
+    quasi-static one of lesions 2 and 3, hours: one 1 mm increment needs relaxing, at
     1/16 mm), and a killed study loses at most the step in flight and the two minutes before
     it (one relaxed quasi-static step can itself take an hour there). ``wall_s`` is the
     compute behind the result: each earlier run's time up to its last save, plus this run's;

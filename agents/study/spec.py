@@ -30,7 +30,7 @@ PAPER_DT_S = 0.02
 #: faster than 0.1 mm/s (see :data:`agents.compress.ACCURATE_SETTLE_STEPS`).
 STUDY_SETTLE_STEPS = ACCURATE_SETTLE_STEPS
 #: ``--quick``: levels up to 4,126 tets, three lesions; the reference on the next level up,
-#: 7,369 tets, to keep the run within minutes (a 176,506-tet reference takes hours here), so
+#: 7,369 tets, to keep the run within minutes (a 176,506-tet reference takes an hour here), so
 #: quick errors near 4,126 tets are underestimates.
 QUICK_LEVELS = (623, 1363, 2539, 4126)
 # The dome's top (1), an intermediate (10, skin tilted 26 degrees) and a flank lesion (3, 45
