@@ -211,7 +211,7 @@ def test_quasi_static_lagrange_gives_up_cleanly_when_its_first_exact_tangent_fai
     np.testing.assert_allclose(np.linalg.norm(on_probe, axis=1).sum(), started.sum(), rtol=1e-9)
 
 
-@pytest.mark.parametrize(("quasi", "depth_m", "steps"), [(False, 0.011, 10), (True, 0.009, 9)])
+@pytest.mark.parametrize(("quasi", "depth_m", "steps"), [(False, 0.011, 8), (True, 0.009, 9)])
 def test_robust_lagrange_never_steps_past_an_inversion(
     block, quasi: bool, depth_m: float, steps: int
 ) -> None:
@@ -220,7 +220,9 @@ def test_robust_lagrange_never_steps_past_an_inversion(
     Newton takes full steps; before, a step jumped past J = 0 (where an inverted tet exerts
     no force) and converged there: the last step ended ``inverted`` (min J -0.13 dynamic,
     -0.09 quasi-static). Now a step that would invert a tet is shortened until none does,
-    and a dynamic step whose inertial prediction x + h v inverts one starts from x."""
+    and a dynamic step whose inertial prediction x + h v inverts one starts from x. (In 1.1 mm
+    dynamic steps, each started from the last one's extrapolation, none reaches J = 0 any
+    more: the dynamic press takes 1.375 mm steps, which reach both guards.)"""
     shape = BoxProbe((0.012, 0.004, 0.01))
     materials = TissueMaterials(tissue=NeoHookean(E, 0.49 if not quasi else 0.45))
     config = SimulationConfig(mode="robust", quasi_static=quasi)
