@@ -422,3 +422,64 @@ def test_compress_command_holds_at_most_settle_steps(tmp_path) -> None:
     assert len(record["levels"]) == 1
     assert len(record["steps"]) == 25 + 3
     assert record["config"]["settle_steps"] == 3
+
+
+@pytest.mark.parametrize("keep_columns", [True, False])
+def test_lagrange_compliance_cache_matches_its_definition(
+    block, monkeypatch: pytest.MonkeyPatch, keep_columns: bool
+) -> None:
+    """The kept compliance W~ = H F^-1 H^T and, while its columns fit the memory budget, the
+    response F^-1 H^T dlambda from them, against both built directly; a normal turned past
+    2 degrees is recomputed; over the budget the columns are dropped (response None) and W~
+    is still right."""
+    import tissue.contact.lagrange as lagrange
+
+    if not keep_columns:
+        monkeypatch.setattr(lagrange, "_KEPT_COLUMNS_BYTES", 1)
+    model = _model("lm", block, SphereProbe(0.01))
+    surface = model.surface
+    dofs = 3 * block.node_count
+    rng = np.random.default_rng(3)
+    root = rng.standard_normal((dofs, dofs))
+    matrix = root @ root.T + dofs * np.eye(dofs)
+
+    class Dense:
+        def solve(self, rhs):
+            return np.linalg.solve(matrix, rhs)
+
+    constrained = np.zeros(dofs, dtype=bool)
+    constrained[rng.choice(dofs, 10, replace=False)] = True
+    points = rng.choice(surface.count, 12, replace=False)
+    normals = rng.standard_normal((12, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+
+    def rows(normals):
+        h = np.zeros((points.size, dofs))
+        nodes = surface.embedding.tet_nodes[points]
+        weights = surface.embedding.weights[points]
+        for i in range(points.size):
+            for node, weight in zip(nodes[i], weights[i], strict=True):
+                h[i, 3 * node : 3 * node + 3] += weight * normals[i]
+        h[:, constrained] = 0.0
+        return h
+
+    cache = lagrange._Compliance(surface)
+    factor = Dense()
+    change = rng.standard_normal(points.size)
+    for turned in (False, True):
+        if turned:  # one point's normal turns by 5 degrees: its entries are recomputed
+            axis = np.cross(normals[0], [1.0, 0.0, 0.0])
+            axis /= np.linalg.norm(axis)
+            angle = np.radians(5.0)
+            normals[0] = np.cos(angle) * normals[0] + np.sin(angle) * axis
+        h = rows(normals)
+        expected = h @ np.linalg.solve(matrix, h.T)
+        np.testing.assert_allclose(
+            cache.matrix(factor, points, normals, constrained), expected, rtol=1e-10, atol=1e-14
+        )
+        response = cache.response(points, change)
+        if keep_columns:
+            assert response is not None
+            np.testing.assert_allclose(response, np.linalg.solve(matrix, h.T @ change), rtol=1e-10)
+        else:
+            assert response is None
