@@ -337,6 +337,19 @@ class IncrementalPotential:
         return self.integrator.solver.solve(system, tolerance=tolerance)
 
 
+def extrapolated_positions(
+    x: NDArray[np.float64],
+    v: NDArray[np.float64],
+    h: float,
+    previous_v: NDArray[np.float64],
+    last_h: float,
+) -> NDArray[np.float64]:
+    """x + h v + h^2 (v - previous_v) / last_h [m], flat (3N,): where a step of ``h`` [s]
+    from (x [m], v [m/s]) lands if it keeps the acceleration of the last step (``last_h``
+    [s], which started at ``previous_v``). Newton's first iterate when continuing a step."""
+    return (x + h * v + (h * h / last_h) * (v - previous_v)).reshape(-1)
+
+
 @numba.njit(cache=True)
 def _add_inertia_and_damping(
     y, inertia_target, x0, mass, h, rayleigh_mass, rayleigh_stiffness, damped, gradient
@@ -786,7 +799,7 @@ class ImplicitIntegrator:
         positions, velocities, previous, last_h = last
         if positions is not x0 or velocities is not v0:
             return None
-        return (x0 + h * v0 + (h * h / last_h) * (v0 - previous)).reshape(-1)
+        return extrapolated_positions(x0, v0, h, previous, last_h)
 
     def _dof_mask(self, dofs: NDArray[np.int64]) -> NDArray[np.bool_]:
         mask = np.zeros(self.mass_dof.shape[0], dtype=bool)

@@ -66,7 +66,12 @@ from numpy.typing import NDArray
 from tissue.contact.base import ContactMethod, SurfacePoints
 from tissue.contact.fe_model import Contacts, FEContactModel, constraint_rows, detect_contacts
 from tissue.errors import ConfigError, TissueInputError
-from tissue.integrator import PROJECTION_SWITCH, RESIDUAL_SCALE_FLOOR, IntegrationMode
+from tissue.integrator import (
+    PROJECTION_SWITCH,
+    RESIDUAL_SCALE_FLOOR,
+    IntegrationMode,
+    extrapolated_positions,
+)
 from tissue.solvers import (
     ConstrainedSystem,
     Factorization,
@@ -569,7 +574,7 @@ class LagrangeContact(FEContactModel):
         if last is None:
             return None
         _, _, previous, last_h = last
-        return (x + h * v + (h * h / last_h) * (v - previous)).reshape(-1)
+        return extrapolated_positions(x, v, h, previous, last_h)
 
     def _continued_step(
         self, x: NDArray[np.float64], v: NDArray[np.float64]
