@@ -28,13 +28,8 @@ Solvers:
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import glob
 import math
-import os
-import sys
 import time
-import weakref
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -47,6 +42,12 @@ from numpy.typing import NDArray
 
 from tissue.choices import Choice
 from tissue.errors import ConfigError
+from tissue.pardiso import (
+    PardisoError,
+    PardisoFactorization,
+    PardisoInstance,
+    pardiso_available,
+)
 
 
 class LinearSolverKind(Choice):
@@ -598,184 +599,6 @@ _NO_BLOCKS = (
 )
 
 
-# ----------------------------------------------------------------------------- Pardiso
-
-
-class PardisoError(RuntimeError):
-    """MKL Pardiso returned an error code (for example -4: zero or negative pivot)."""
-
-
-_PARDISO_FUNCTION: list[object] = []
-
-
-def _pardiso_function() -> object:
-    """MKL's ``pardiso`` entry point, located and typed by pypardiso (loaded once per process).
-
-    Unless ``PYPARDISO_MKL_RT`` names the library, pypardiso, both at import and in every
-    ``PyPardisoSolver()``, searches the whole Python environment recursively for ``mkl_rt``:
-    0.7-0.9 s each time here (a venv with torch), which landed in the first simulated step.
-    The ``mkl`` wheel puts it in ``<prefix>/lib`` (``Library/bin`` on Windows), so it is named
-    from there first; pypardiso's own search remains the fallback.
-    """
-    if not _PARDISO_FUNCTION:
-        if "PYPARDISO_MKL_RT" not in os.environ:
-            patterns = ("lib/libmkl_rt.so*", "lib/libmkl_rt*.dylib", "Library/bin/mkl_rt*.dll")
-            found = [
-                path
-                for pattern in patterns
-                for path in sorted(glob.glob(os.path.join(sys.prefix, pattern)), key=len)
-            ]
-            for path in found:
-                with contextlib.suppress(OSError):
-                    ctypes.CDLL(path)  # loads: name it; otherwise try the next or search
-                    os.environ["PYPARDISO_MKL_RT"] = path
-                    break
-        import pypardiso
-
-        _PARDISO_FUNCTION.append(pypardiso.PyPardisoSolver()._mkl_pardiso)
-    return _PARDISO_FUNCTION[0]
-
-
-def _pardiso_call(function, pt, iparm, mtype, phase, n, data, indptr, indices, b, x, nrhs):
-    """One call of MKL ``pardiso``; raises PardisoError on a non-zero error code."""
-    error = ctypes.c_int32(0)
-    int_p = ctypes.POINTER(ctypes.c_int32)
-    no_perm = np.zeros(1, dtype=np.int32)
-    function(
-        pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
-        ctypes.byref(ctypes.c_int32(1)),  # maxfct
-        ctypes.byref(ctypes.c_int32(1)),  # mnum
-        ctypes.byref(ctypes.c_int32(mtype)),
-        ctypes.byref(ctypes.c_int32(phase)),
-        ctypes.byref(ctypes.c_int32(n)),
-        ctypes.c_void_p(data.ctypes.data),
-        indptr.ctypes.data_as(int_p),
-        indices.ctypes.data_as(int_p),
-        no_perm.ctypes.data_as(int_p),
-        ctypes.byref(ctypes.c_int32(nrhs)),
-        iparm.ctypes.data_as(int_p),
-        ctypes.byref(ctypes.c_int32(0)),  # msglvl
-        ctypes.c_void_p(b.ctypes.data),
-        ctypes.c_void_p(x.ctypes.data),
-        ctypes.byref(error),
-    )
-    if error.value != 0:
-        raise PardisoError(f"MKL Pardiso phase {phase} failed with error {error.value}")
-
-
-def _pardiso_release(function, pt, iparm, mtype) -> None:
-    """Free all of one Pardiso instance's memory (phase -1); called when it is collected."""
-    empty = np.zeros(1)
-    pointer = np.zeros(1, dtype=np.int32)
-    with contextlib.suppress(Exception):  # nothing useful to do while collecting
-        _pardiso_call(function, pt, iparm, mtype, -1, 0, empty, pointer, pointer, empty, empty, 1)
-
-
-class _PardisoInstance:
-    """One MKL Pardiso instance for one pattern, matrix type and precision.
-
-    Calls MKL directly (pypardiso only locates the library): zero-based CSR arrays are passed
-    as they are (pypardiso copies and shifts both index arrays on every call, a few ms per
-    solve on the finest meshes), and the instance's memory (the factor: hundreds of MB on
-    the finest meshes) is released when the instance is collected (pypardiso never frees it).
-
-    Args:
-        mtype: 2 (SPD, Cholesky) or -2 (symmetric indefinite, Bunch-Kaufman).
-        single: factorise and solve in single precision (half the memory and time; for
-            preconditioners).
-        indptr, indices: the upper triangle's CSR structure, int32, zero-based.
-        data: the upper triangle's values in the instance's precision; refilled before each
-            factorisation (Pardiso may read them again while solving).
-    """
-
-    def __init__(
-        self,
-        mtype: int,
-        single: bool,
-        indptr: NDArray[np.int32],
-        indices: NDArray[np.int32],
-        data: NDArray[np.floating],
-    ) -> None:
-        self.mtype = mtype
-        self.dtype = np.float32 if single else np.float64
-        self.n = indptr.shape[0] - 1
-        self.indptr = indptr
-        self.indices = indices
-        self.data = data
-        self._function = _pardiso_function()
-        self._pt = np.zeros(64, dtype=np.int64)
-        iparm = np.zeros(64, dtype=np.int32)
-        iparm[0] = 1  # the values below, not MKL's defaults
-        iparm[1] = 3  # parallel nested dissection (METIS), MKL's default
-        iparm[7] = 0  # iterative refinement only when pivots were perturbed
-        iparm[9] = 8  # pivot perturbation 1e-8 (symmetric indefinite)
-        iparm[17] = -1  # report the factor's nonzeros
-        iparm[20] = 1  # Bunch-Kaufman 1x1 and 2x2 pivots (symmetric indefinite)
-        iparm[27] = 1 if single else 0
-        iparm[34] = 1  # zero-based indices
-        self._iparm = iparm
-        self._finalizer = weakref.finalize(
-            self, _pardiso_release, self._function, self._pt, iparm, mtype
-        )
-        self._call(11, np.zeros((self.n, 1), dtype=self.dtype), 1)  # symbolic analysis
-
-    @property
-    def factor_nonzeros(self) -> int:
-        """Nonzeros of the last factor (as MKL reports them)."""
-        return int(self._iparm[17])
-
-    def factorize(self) -> None:
-        """Numerical factorisation of ``data``; raises PardisoError (e.g. not SPD)."""
-        self._call(22, np.zeros((self.n, 1), dtype=self.dtype), 1)
-
-    def solve(self, rhs: NDArray[np.float64]) -> NDArray[np.float64]:
-        b = np.asfortranarray(rhs, dtype=self.dtype)
-        nrhs = 1 if b.ndim == 1 else b.shape[1]
-        x = np.empty_like(b, order="F")
-        _pardiso_call(
-            self._function,
-            self._pt,
-            self._iparm,
-            self.mtype,
-            33,
-            self.n,
-            self.data,
-            self.indptr,
-            self.indices,
-            b,
-            x,
-            nrhs,
-        )
-        return np.ascontiguousarray(x, dtype=np.float64)
-
-    def _call(self, phase: int, b: NDArray[np.floating], nrhs: int) -> None:
-        x = np.empty_like(b)
-        _pardiso_call(
-            self._function,
-            self._pt,
-            self._iparm,
-            self.mtype,
-            phase,
-            self.n,
-            self.data,
-            self.indptr,
-            self.indices,
-            b,
-            x,
-            nrhs,
-        )
-
-
-class _PardisoFactorization:
-    """A factorisation held by a Pardiso instance (replaced by the instance's next one)."""
-
-    def __init__(self, instance: _PardisoInstance) -> None:
-        self._instance = instance
-
-    def solve(self, rhs: NDArray[np.float64]) -> NDArray[np.float64]:
-        return self._instance.solve(rhs)
-
-
 class _SuperLUFactorization:
     def __init__(self, matrix: sp.csr_matrix) -> None:
         import scipy.sparse.linalg as spla
@@ -799,11 +622,11 @@ class DirectFactorizer:
     def __init__(self, backend: DirectBackend | str = DirectBackend.AUTO) -> None:
         self.backend = DirectBackend.parse(backend)
         if self.backend is DirectBackend.AUTO:
-            self.backend = DirectBackend.PARDISO if _pardiso_available() else DirectBackend.SUPERLU
+            self.backend = DirectBackend.PARDISO if pardiso_available() else DirectBackend.SUPERLU
         self._pattern: tuple[NDArray[np.integer], NDArray[np.integer]] | None = None
         self._upper_positions: NDArray[np.int64] | None = None
         self._upper_structure: tuple[NDArray[np.int32], NDArray[np.int32]] | None = None
-        self._instances: dict[tuple[int, bool], _PardisoInstance] = {}
+        self._instances: dict[tuple[int, bool], PardisoInstance] = {}
 
     def factorize(self, matrix: sp.csr_matrix) -> tuple[Factorization, bool]:
         """Factorise ``matrix`` (CSR, symmetric). Returns (factorisation, used_indefinite)."""
@@ -841,7 +664,7 @@ class DirectFactorizer:
 
     def _factorize_pardiso(
         self, matrix: sp.csr_matrix, mtype: int, single: bool
-    ) -> _PardisoFactorization:
+    ) -> PardisoFactorization:
         self._refresh_pattern(matrix)
         assert self._upper_positions is not None and self._upper_structure is not None
         instance = self._instances.get((mtype, single))
@@ -851,12 +674,12 @@ class DirectFactorizer:
                 indices.shape[0], dtype=np.float32 if single else np.float64
             )
             _gather(matrix.data, self._upper_positions, data)
-            instance = _PardisoInstance(mtype, single, indptr, indices, data)
+            instance = PardisoInstance(mtype, single, indptr, indices, data)
             self._instances[(mtype, single)] = instance
         else:
             _gather(matrix.data, self._upper_positions, instance.data)
         instance.factorize()
-        return _PardisoFactorization(instance)
+        return PardisoFactorization(instance)
 
     def _refresh_pattern(self, matrix: sp.csr_matrix) -> None:
         """Upper-triangle positions and structure of a new pattern (instances dropped)."""
@@ -882,14 +705,6 @@ class DirectFactorizer:
             and np.array_equal(indptr, matrix.indptr)
             and np.array_equal(indices, matrix.indices)
         )
-
-
-def _pardiso_available() -> bool:
-    try:
-        _pardiso_function()
-    except Exception:  # noqa: BLE001 - no MKL runtime on this platform
-        return False
-    return True
 
 
 @dataclass(frozen=True)
