@@ -432,10 +432,10 @@ def test_lagrange_compliance_cache_matches_its_definition(
     response F^-1 H^T dlambda from them, against both built directly; a normal turned past
     2 degrees is recomputed; over the budget the columns are dropped (response None) and W~
     is still right."""
-    import tissue.contact.lagrange as lagrange
+    import tissue.contact.compliance as compliance
 
     if not keep_columns:
-        monkeypatch.setattr(lagrange, "_KEPT_COLUMNS_BYTES", 1)
+        monkeypatch.setattr(compliance, "_KEPT_COLUMNS_BYTES", 1)
     model = _model("lm", block, SphereProbe(0.01))
     surface = model.surface
     dofs = 3 * block.node_count
@@ -463,7 +463,7 @@ def test_lagrange_compliance_cache_matches_its_definition(
         h[:, constrained] = 0.0
         return h
 
-    cache = lagrange._Compliance(surface)
+    cache = compliance.KeptCompliance(surface)
     factor = Dense()
     change = rng.standard_normal(points.size)
     for turned in (False, True):

@@ -1,0 +1,175 @@
+"""LM's kept compliance: W~ = H F^-1 H^T [m/N] between collision-surface points, under one
+kept factorisation F of the step's matrix A, cached per point across Newton iterations and
+steps (see :class:`KeptCompliance`; used by :mod:`tissue.contact.lagrange`).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from tissue.contact.base import SurfacePoints
+from tissue.solvers import Factorization
+
+# A point's entries of the kept compliance W~ are recomputed once its contact normal has
+# turned further than this (cos 2 degrees) from the one they were computed with.
+_NORMAL_TURN_COS = float(np.cos(np.radians(2.0)))
+# Constraint columns solved for together (memory: dofs x this doubles).
+COLUMN_BATCH = 96
+# The compliance cache keeps its columns F^-1 E_p^T n_p (to start each response solve from
+# their combination) while they take at most this many bytes [B]; beyond, it drops them.
+_KEPT_COLUMNS_BYTES = 256 * 2**20
+
+
+class KeptCompliance:
+    """Entries W~_pq = n_p^T E_p F^-1 E_q^T n_q [m/N] between collision-surface points p and q
+    for one kept factorisation F, E_p the point's barycentric embedding (3 x dofs, zero at
+    constrained dofs) and n_p its contact normal as it was when its entries were computed.
+
+    W~ of any contact set is then a submatrix. A point costs one solve, F^-1 E_p^T n_p, the
+    first time it is seen under F, and again only once its normal has turned by more than 2
+    degrees (:data:`_NORMAL_TURN_COS`; a point sliding round the probe's rim). A new F starts
+    afresh, so W~ of a freshly factorised A is exact. Between, the normals it carries may lag
+    the contacts' by up to that angle: one more approximation of W~ beside F's own, which the
+    response rounds correct as they correct F's (their fixed point uses the exact gaps).
+
+    While they fit in :data:`_KEPT_COLUMNS_BYTES` the columns F^-1 E_p^T n_p are kept too
+    (:meth:`response`; at 176k tets they take 0.8 MB per point): F^-1 H^T dlambda, the
+    response to a change of the forces under F, is then a sum of columns instead of a solve,
+    and each response solve starts from it.
+    """
+
+    def __init__(self, surface: SurfacePoints) -> None:
+        self.surface = surface
+        self.owner: Factorization | None = None
+        self.slot = np.full(surface.count, -1, dtype=np.int64)
+        self.count = 0
+        self.points = np.zeros(0, dtype=np.int64)
+        self.normals = np.zeros((0, 3))
+        self.entries = np.zeros((0, 0))
+        self.solved_columns = 0
+        # Row p: the column F^-1 E_p^T n_p of slot p over all dofs (None once too large:
+        # dropped for good, as the capacity never shrinks).
+        self.columns: NDArray[np.float64] | None = np.zeros((0, 0))
+
+    def matrix(
+        self,
+        factorization: Factorization,
+        points: NDArray[np.int64],
+        normals: NDArray[np.float64],
+        constrained: NDArray[np.bool_],
+    ) -> NDArray[np.float64]:
+        """W~ = H F^-1 H^T [m/N] for contacts at ``points`` with ``normals`` (k, 3); (k, k)."""
+        if factorization is not self.owner:
+            self.owner = factorization
+            self.slot[:] = -1
+            self.count = 0
+        slots = self.slot[points]
+        unseen = slots < 0
+        known = ~unseen
+        stale = unseen.copy()  # unseen, or seen with a normal that has turned since
+        if np.any(known):
+            cosine = np.einsum("ij,ij->i", self.normals[slots[known]], normals[known])
+            stale[known] = cosine < _NORMAL_TURN_COS
+        if np.any(stale):
+            new = points[unseen]
+            self._reserve(new.size, constrained.size)
+            self.slot[new] = np.arange(self.count, self.count + new.size)
+            self.points[self.count : self.count + new.size] = new
+            self.count += new.size
+            slots = self.slot[points]
+            self.normals[slots[stale]] = normals[stale]
+            update = points[stale]
+            for start in range(0, update.size, COLUMN_BATCH):
+                self._solve(factorization, update[start : start + COLUMN_BATCH], constrained)
+        return self.entries[np.ix_(slots, slots)]
+
+    def _reserve(self, extra: int, dofs: int) -> None:
+        """Room for ``extra`` more points (capacity doubled, so that growing is amortised),
+        and for their columns over ``dofs`` while those are kept."""
+        needed = self.count + extra
+        k = self.count
+        if needed > self.points.size:
+            capacity = max(needed, 2 * self.points.size, 64)
+            points = np.zeros(capacity, dtype=np.int64)
+            normals = np.zeros((capacity, 3))
+            entries = np.zeros((capacity, capacity))
+            points[:k] = self.points[:k]
+            normals[:k] = self.normals[:k]
+            entries[:k, :k] = self.entries[:k, :k]
+            self.points, self.normals, self.entries = points, normals, entries
+        if self.columns is not None and self.columns.shape[0] < self.points.size:
+            if self.points.size * dofs * 8 > _KEPT_COLUMNS_BYTES:
+                self.columns = None
+            else:
+                columns = np.zeros((self.points.size, dofs))
+                if k:
+                    columns[:k] = self.columns[:k]
+                self.columns = columns
+
+    def response(
+        self, points: NDArray[np.int64], change: NDArray[np.float64]
+    ) -> NDArray[np.float64] | None:
+        """F^-1 H^T dlambda [m] (dofs,) for force changes ``change`` [N] at ``points`` (all
+        seen under the current F), with the normals kept; None when the columns are not kept."""
+        if self.columns is None:
+            return None
+        out = np.zeros(self.columns.shape[1])
+        _add_scaled_rows(self.columns, self.slot[points], change, out)
+        return out
+
+    def _projected_embedding(
+        self, points: NDArray[np.int64], constrained: NDArray[np.bool_]
+    ) -> sp.csr_matrix:
+        """Rows n_p^T E_p of ``points`` with their kept normals, (k, dofs)."""
+        count = points.size
+        nodes = self.surface.embedding.tet_nodes[points]  # (k, 4)
+        weights = self.surface.embedding.weights[points]
+        normals = self.normals[self.slot[points]]
+        rows = np.broadcast_to(np.arange(count)[:, None, None], (count, 4, 3))
+        cols = 3 * nodes[:, :, None] + np.arange(3)
+        values = weights[:, :, None] * normals[:, None, :]
+        keep = ~constrained[cols]
+        matrix = sp.csr_matrix(
+            (values[keep], (rows[keep], cols[keep])), shape=(count, constrained.size)
+        )
+        matrix.sum_duplicates()
+        return matrix
+
+    def _solve(
+        self,
+        factorization: Factorization,
+        update: NDArray[np.int64],
+        constrained: NDArray[np.bool_],
+    ) -> None:
+        """Recompute the rows and columns of ``update`` (points with slots and normals)."""
+        columns = factorization.solve(
+            np.asfortranarray(self._projected_embedding(update, constrained).T.toarray())
+        )
+        columns = np.asarray(columns).reshape(constrained.size, -1)  # (dofs, u)
+        self.solved_columns += columns.shape[1]
+        k = self.count
+        if self.columns is not None:
+            self.columns[self.slot[update]] = columns.T
+        # cross[q, u] = n_q^T E_q F^-1 E_u^T n_u for every kept point q and updated point u.
+        cross = self._projected_embedding(self.points[:k], constrained) @ columns
+        slots = self.slot[update]
+        self.entries[:k, slots] = cross
+        self.entries[slots, :k] = cross.T
+        own = cross[slots]
+        self.entries[np.ix_(slots, slots)] = 0.5 * (own + own.T)
+
+
+@numba.njit(cache=True)
+def _add_scaled_rows(rows, which, scales, out):  # pragma: no cover - compiled
+    """out += sum_i scales[i] rows[which[i]], in one serial loop (a BLAS product of a tall
+    matrix wakes OpenBLAS's threads: see tissue.solvers._subtract_product)."""
+    for i in range(which.shape[0]):
+        scale = scales[i]
+        if scale == 0.0:
+            continue
+        row = rows[which[i]]
+        for j in range(out.shape[0]):
+            out[j] += scale * row[j]
