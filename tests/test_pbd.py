@@ -11,6 +11,7 @@ from tissue.contact.base import ContactMethod
 from tissue.errors import ConfigError
 from tissue.mesh import TetMesh
 from tissue.pbd import PBDConfig, PBDContact
+from tissue.pbd_calibration import calibrate_pbd
 from tissue.probe import BoxProbe, Probe
 from tissue.status import StepStatus
 
@@ -321,7 +322,7 @@ def test_bad_constructor_arguments(block: TetMesh) -> None:
 def test_calibration_mismatch_within_documented_bounds(mode: str, lesion_bound) -> None:
     """The stored scales of each configuration still match the FE on the default phantom
     (about 5 s and 10 s); the robust one (measured 9.6 %, against 30.2 %) much closer."""
-    result = pbd.calibrate_pbd(config=PBDConfig.for_mode(mode), fit=False)
+    result = calibrate_pbd(config=PBDConfig.for_mode(mode), fit=False)
     print(result.summary())
     assert result.pbd.status is StepStatus.OK
     assert abs(result.force_mismatch) <= pbd.CALIBRATION_FORCE_BOUND
@@ -342,7 +343,7 @@ def test_configurations_by_mode() -> None:
 def test_calibration_refit_reproduces_the_stored_scales() -> None:
     """Re-running the fit from (1, 1) lands on the stored scales (about 15 s)."""
     start = PBDConfig(deviatoric_compliance_scale=1.0, volume_compliance_scale=1.0)
-    result = pbd.calibrate_pbd(config=start)
+    result = calibrate_pbd(config=start)
     assert result.deviatoric_compliance_scale == pytest.approx(
         pbd.CALIBRATED_DEVIATORIC_COMPLIANCE_SCALE, rel=0.05
     )

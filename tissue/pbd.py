@@ -92,17 +92,17 @@ Calibration
 -----------
 XPBD with a few Gauss-Seidel sweeps does not converge the implicit step: the effective stiffness
 and the volume preservation fall short of the material's, so the compliances carry two scales,
-calibrated once by :func:`calibrate_pbd` against the FE simulator (``TissueSimulator``, robust
-mode: Newton, stable neo-Hookean) on the default phantom (``breast_phantom(4126)``, tissue
-E = 2850 Pa, nu = 0.49, lesions 4 x stiffer): a 10 mm compression of the apex along -z by the
-linear probe face at 0.01 m/s, then held 0.5 s. The FE side prescribes z (frictionless) on every
-boundary node under the face's outline once the face reaches it; the PBD side presses a
-:class:`~tissue.probe.LinearProbeFace`. The objective is the relative mismatch of the normal
-reaction force plus that of the lesion landmark displacements (the norm of the difference of
-the displacement vectors over the norm of the FE displacements, all lesions), minimised by
-Nelder-Mead over the log scales from (1, 1). Measured with the default config (10 substeps,
-1 iteration, 3 contact-zone sweeps, damping 2/s, hard contact, the boundary nodes as contact
-points), 41 PBD runs, 15 s in all:
+calibrated once by :func:`~tissue.pbd_calibration.calibrate_pbd` against the FE simulator
+(``TissueSimulator``, robust mode: Newton, stable neo-Hookean) on the default phantom
+(``breast_phantom(4126)``, tissue E = 2850 Pa, nu = 0.49, lesions 4 x stiffer): a 10 mm
+compression of the apex along -z by the linear probe face at 0.01 m/s, then held 0.5 s. The FE side
+prescribes z (frictionless) on every boundary node under the face's outline once the face reaches
+it; the PBD side presses a :class:`~tissue.probe.LinearProbeFace`. The objective is the relative
+mismatch of the normal reaction force plus that of the lesion landmark displacements (the norm of
+the difference of the displacement vectors over the norm of the FE displacements, all lesions),
+minimised by Nelder-Mead over the log scales from (1, 1). Measured with the default config (10
+substeps, 1 iteration, 3 contact-zone sweeps, damping 2/s, hard contact, the boundary nodes as
+contact points), 41 PBD runs, 15 s in all:
 
     =============================  ==========================  ==========================
     quantity                       FE (robust, prescribed)     PBD (calibrated)
@@ -121,9 +121,9 @@ one sweep per substep is too soft, and the fit stiffens both constraints. (The l
 mismatch was 10.2 % with the lesion layout before the study's flank lesions were moved
 inwards; most of it is in the lesions beside the probe, which moved closer to it. With the
 collision-surface vertices as contact points instead, the fit needs a volume scale of 4.7 and
-still leaves 15.0 % lesion mismatch.) The slow test re-runs :func:`calibrate_pbd` and requires
-the stored scales to stay within :data:`CALIBRATION_FORCE_BOUND` and
-:data:`CALIBRATION_LESION_BOUND`.
+still leaves 15.0 % lesion mismatch.) The slow test re-runs
+:func:`~tissue.pbd_calibration.calibrate_pbd` and requires the stored scales to stay within
+:data:`CALIBRATION_FORCE_BOUND` and :data:`CALIBRATION_LESION_BOUND`.
 
 Robust configuration
 --------------------
@@ -142,11 +142,11 @@ the stiffer deviatoric scale (0.5456 with volume scale 1 blows up the same way; 
 = 60 substeps (Macklin et al. 2019: substeps converge better than iterations), calibrated the
 same way, with contact points at most :data:`ROBUST_CONTACT_SPACING_M` = 4 mm apart: the
 volume compliance is the material's own (scale 1) and the deviatoric scale is fitted to the
-force (``calibrate_pbd(..., fit=False)`` at 1.06, 1.08, 1.10, 1.15 and 1.16): 1.16, force
--0.30 %, lesion 1 6.8 %, all lesions 9.4 % (30.2 % at 10 substeps). The two-scale fit from
-(1, 1) (run with 3 ms of damping, below) landed on a softer volume (1.013 and 1.511, all
-lesions 9.6 %): a volume scale of 1 keeps the material's own compressibility for nearly the
-same match. On the boundary nodes alone the two-scale fit gives 1.024 and
+force (``tissue.pbd_calibration.calibrate_pbd(..., fit=False)`` at 1.06, 1.08, 1.10, 1.15
+and 1.16): 1.16, force -0.30 %, lesion 1 6.8 %, all lesions 9.4 % (30.2 % at 10 substeps). The
+two-scale fit from (1, 1) (run with 3 ms of damping, below) landed on a softer volume (1.013 and
+1.511, all lesions 9.6 %): a volume scale of 1 keeps the material's own compressibility for nearly
+the same match. On the boundary nodes alone the two-scale fit gives 1.024 and
 0.533 and 12.2 %. The points between nodes cure the tissue closing over the probe on the
 1,363-tet level (above); with them and a volume scale of 1 the 30 mm hold there no longer
 jitters (with them and the previous scales, 0.9994 and 0.946, a lateral lesion still moved
@@ -215,8 +215,8 @@ from tissue.mesh import TetMesh, boundary_faces, triangle_grid
 from tissue.probe import ProbeShape, quat_to_matrix
 from tissue.status import StepStatus
 
-# Calibrated compliance scales (see the module docstring and calibrate_pbd): the paper
-# configuration (10 substeps, the defaults) ...
+# Calibrated compliance scales (see the module docstring and
+# tissue.pbd_calibration.calibrate_pbd): the paper configuration (10 substeps, the defaults) ...
 CALIBRATED_DEVIATORIC_COMPLIANCE_SCALE = 0.5456
 CALIBRATED_VOLUME_COMPLIANCE_SCALE = 0.5073
 # ... and the robust one (ROBUST_SUBSTEPS substeps, contact points between the boundary nodes).
@@ -842,11 +842,11 @@ class PBDContact(ContactModel):
         Not converged per step: XPBD with a few sweeps is softer than the material and only
         approaches the FE through the calibrated compliance scales, which hold for the
         calibration's mesh resolution, substep count and loading; other meshes or settings
-        need :func:`calibrate_pbd` again (at level 4126, 15 and 20 substeps give +14 % and
-        +22 % force with the same scales). Too few substeps let the hard contact crush the
-        surface tets: at level 4126, 5 substeps end INVERTED (-31 % force). Contact acts on
-        the volume's boundary nodes, so a collision surface that bulges between them (or lies
-        outside the volume) is not held: 6 mm into level 4126 its deepest vertex is 1.2 mm
+        need :func:`~tissue.pbd_calibration.calibrate_pbd` again (at level 4126, 15 and 20
+        substeps give +14 % and +22 % force with the same scales). Too few substeps let the hard
+        contact crush the surface tets: at level 4126, 5 substeps end INVERTED (-31 % force).
+        Contact acts on the volume's boundary nodes, so a collision surface that bulges between them
+        (or lies outside the volume) is not held: 6 mm into level 4126 its deepest vertex is 1.2 mm
         inside the linear probe, where the FE strategies contacting it give about 0. Contact
         planes are taken once per substep from the exact SDF at the predicted positions, so
         the probe must move less than about half its thickness per substep (1.3 mm for the
@@ -1100,270 +1100,3 @@ class PBDContact(ContactModel):
         normals = np.ascontiguousarray(normal_local[close] @ rotation.T)
         anchors = points[near[close]] - distance[close, None] * normals
         return near[close].astype(np.int64), normals, np.ascontiguousarray(anchors)
-
-
-# ----------------------------------------------------------------------------------------
-# Calibration against the FE simulator
-
-
-@dataclass(frozen=True)
-class CompressionResponse:
-    """A tissue's response after a compression of the phantom's apex.
-
-    Attributes:
-        force_n: normal reaction force on the probe, along +z [N].
-        lesion_displacements_m: landmark displacements from rest [m], (landmark_count, 3).
-        status: the worst step status met.
-        step_ms: median wall time of a step [ms].
-    """
-
-    force_n: float
-    lesion_displacements_m: NDArray[np.float64]
-    status: StepStatus
-    step_ms: float
-
-
-@dataclass(frozen=True)
-class CalibrationResult:
-    """What :func:`calibrate_pbd` measured.
-
-    Attributes:
-        deviatoric_compliance_scale, volume_compliance_scale: the fitted (or evaluated) scales.
-        fe: the FE reference response. pbd: the PBD response with those scales.
-        force_mismatch: (F_pbd - F_fe) / F_fe, signed.
-        lesion_mismatch: |u_pbd - u_fe| / |u_fe| over all landmark displacements (Frobenius).
-        top_lesion_mismatch: the same for the lesion the FE moves most (the one under the probe).
-        evaluations: PBD runs made.
-    """
-
-    deviatoric_compliance_scale: float
-    volume_compliance_scale: float
-    fe: CompressionResponse
-    pbd: CompressionResponse
-    force_mismatch: float
-    lesion_mismatch: float
-    top_lesion_mismatch: float
-    evaluations: int
-
-    def summary(self) -> str:
-        """A few lines for logs and the module docstring."""
-        top = int(np.argmax(np.linalg.norm(self.fe.lesion_displacements_m, axis=1)))
-        return (
-            f"scales: deviatoric {self.deviatoric_compliance_scale:.4f}, volume "
-            f"{self.volume_compliance_scale:.4f} ({self.evaluations} PBD runs)\n"
-            f"force: FE {self.fe.force_n:.4f} N, PBD {self.pbd.force_n:.4f} N "
-            f"({100 * self.force_mismatch:+.2f} %)\n"
-            f"lesion {top + 1} displacement [mm]: FE "
-            f"{np.round(1e3 * self.fe.lesion_displacements_m[top], 2).tolist()}, PBD "
-            f"{np.round(1e3 * self.pbd.lesion_displacements_m[top], 2).tolist()} "
-            f"({100 * self.top_lesion_mismatch:.1f} %)\n"
-            f"all lesions: |u_pbd - u_fe| / |u_fe| = {100 * self.lesion_mismatch:.1f} %\n"
-            f"step: FE {self.fe.step_ms:.1f} ms, PBD {self.pbd.step_ms:.2f} ms"
-        )
-
-
-def _face_pose_and_footprint(
-    mesh: TetMesh, face: ProbeShape, points: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
-    """The face pressing down at the centre of the mesh's plan: origin at the height of the
-    highest of ``points`` under its outline, quaternion, and the indices of those points."""
-    from tissue.probe import Probe
-
-    centre = 0.5 * (mesh.nodes[:, :2].min(axis=0) + mesh.nodes[:, :2].max(axis=0))
-    probe = Probe.looking_along(face, (centre[0], centre[1], 0.0), (0.0, 0.0, -1.0))
-    # A point lies under the outline if it is inside the probe once lifted into the probe's
-    # body: the face presses along -z, so its body is above, at z in (0, thickness).
-    lifted = points.copy()
-    body_depth = float(-face.surface()[0][:, 1].min())
-    lifted[:, 2] = 0.5 * body_depth
-    distance, _ = probe.signed_distance_world(lifted)
-    under = np.flatnonzero(distance < 0.0)
-    if under.size == 0:
-        raise TissueInputError("no surface point lies under the probe face at the mesh's centre")
-    top = float(points[under, 2].max())
-    return np.array([centre[0], centre[1], top]), probe.quat_wxyz.copy(), under
-
-
-def _ramp_depths(depth_m: float, speed_m_s: float, hold_s: float, dt: float) -> list[float]:
-    ramp = math.ceil(depth_m / (speed_m_s * dt) - 1e-9)
-    hold = round(hold_s / dt)
-    return [min(depth_m, (k + 1) * speed_m_s * dt) for k in range(ramp)] + [depth_m] * hold
-
-
-def fe_compression(
-    mesh: TetMesh,
-    materials: TissueMaterials | None = None,
-    depth_m: float = 0.01,
-    speed_m_s: float = 0.01,
-    hold_s: float = 0.5,
-    tissue_dt: float = 0.02,
-) -> CompressionResponse:
-    """The FE reference: the linear probe face pressed into the apex by prescribed nodes.
-
-    Every boundary node under the face's outline is held at the face's height along z only
-    (frictionless) from the step the face reaches it (robust mode: Newton, stable neo-Hookean,
-    as ``agents/tissue_demo.py``); the force is minus their reaction. The face moves down at
-    ``speed_m_s`` to ``depth_m`` below first contact, then holds ``hold_s``.
-    """
-    from tissue.mesh import boundary_faces
-    from tissue.probe import LinearProbeFace
-    from tissue.simulator import SimulationConfig, TissueSimulator
-
-    sim = TissueSimulator(mesh, materials, SimulationConfig(tissue_dt=tissue_dt, mode="robust"))
-    boundary = np.unique(boundary_faces(mesh.tets))
-    origin, _, under = _face_pose_and_footprint(mesh, LinearProbeFace(), mesh.nodes[boundary])
-    candidates = boundary[under]
-    rest = sim.landmark_positions()
-    held = np.zeros(0, dtype=np.int64)
-    worst = StepStatus.OK
-    times = []
-    force = 0.0
-    for depth in _ramp_depths(depth_m, speed_m_s, hold_s, tissue_dt):
-        face_z = origin[2] - depth
-        held = np.union1d(held, candidates[sim.positions[candidates, 2] >= face_z])
-        sim.prescribe(held, np.array([0.0, 0.0, face_z]), axes=(2,))
-        result = sim.step()
-        times.append(result.compute_ms)
-        worst = max(worst, result.status, key=_severity)
-        force = float(-result.reaction_force_n(held)[2]) if held.size else 0.0
-    return CompressionResponse(
-        force_n=force,
-        lesion_displacements_m=sim.landmark_positions() - rest,
-        status=worst,
-        step_ms=float(np.median(times)),
-    )
-
-
-def pbd_compression(
-    mesh: TetMesh,
-    materials: TissueMaterials | None = None,
-    config: PBDConfig | None = None,
-    depth_m: float = 0.01,
-    speed_m_s: float = 0.01,
-    hold_s: float = 0.5,
-) -> CompressionResponse:
-    """The same compression as :func:`fe_compression` with :class:`PBDContact`.
-
-    The :class:`~tissue.probe.LinearProbeFace` starts touching the highest contact-surface
-    point under its outline and moves along -z (the force is the wrench's z component).
-    """
-    from tissue.probe import LinearProbeFace
-
-    face = LinearProbeFace()
-    model = PBDContact(mesh, face, materials, config)
-    origin, quat, _ = _face_pose_and_footprint(mesh, face, model.contact_point_positions)
-    rest = model.landmark_positions()
-    worst = StepStatus.OK
-    times = []
-    force = 0.0
-    for depth in _ramp_depths(depth_m, speed_m_s, hold_s, model.dt):
-        result = model.step(origin - np.array([0.0, 0.0, depth]), quat)
-        times.append(result.compute_ms)
-        worst = max(worst, result.status, key=_severity)
-        force = float(result.force_world[2])
-    return CompressionResponse(
-        force_n=force,
-        lesion_displacements_m=model.landmark_positions() - rest,
-        status=worst,
-        step_ms=float(np.median(times)),
-    )
-
-
-def _severity(status: StepStatus) -> int:
-    from tissue.status import SEVERITY
-
-    return SEVERITY[status]
-
-
-def _mismatch(fe: CompressionResponse, pbd: CompressionResponse) -> tuple[float, float, float]:
-    """(signed force mismatch, all-lesion displacement mismatch, top-lesion mismatch)."""
-    u_fe = fe.lesion_displacements_m
-    u_pbd = pbd.lesion_displacements_m
-    force = (pbd.force_n - fe.force_n) / fe.force_n
-    lesions = float(np.linalg.norm(u_pbd - u_fe) / np.linalg.norm(u_fe))
-    top = int(np.argmax(np.linalg.norm(u_fe, axis=1)))
-    top_lesion = float(np.linalg.norm(u_pbd[top] - u_fe[top]) / np.linalg.norm(u_fe[top]))
-    return force, lesions, top_lesion
-
-
-def calibrate_pbd(
-    level: int = 4126,
-    materials: TissueMaterials | None = None,
-    config: PBDConfig | None = None,
-    depth_m: float = 0.01,
-    fit: bool = True,
-    max_evaluations: int = 40,
-) -> CalibrationResult:
-    """Fit (or check) the PBD compliance scales against the FE on the built-in phantom.
-
-    Procedure: run :func:`fe_compression` once (the reference), then minimise
-    |force mismatch| + all-lesion displacement mismatch over the logarithms of the two
-    compliance scales with Nelder-Mead, starting from ``config``'s scales (each evaluation
-    one :func:`pbd_compression`, about 0.3 s at level 4126). With ``fit=False`` only
-    ``config``'s scales are evaluated (what the slow test does with the stored constants).
-
-    Args:
-        level: the phantom level (tet count), see :func:`tissue.phantom.breast_phantom`.
-        materials: tissue materials; default E = 2850 Pa, nu = 0.49.
-        config: PBD settings; the scales in it are the starting point (or the ones checked).
-        depth_m: compression depth from first contact [m].
-        fit: fit the scales (True) or only evaluate ``config`` (False).
-        max_evaluations: Nelder-Mead's budget of PBD runs.
-
-    Returns:
-        the scales and the measured responses and mismatches.
-    """
-    from dataclasses import replace
-
-    from scipy.optimize import minimize
-
-    from tissue.phantom import breast_phantom
-
-    mesh = breast_phantom(level)
-    base = config or PBDConfig()
-    fe = fe_compression(mesh, materials, depth_m=depth_m, tissue_dt=base.tissue_dt)
-    evaluations = 0
-
-    def evaluate(log_scales: NDArray[np.float64]) -> tuple[CompressionResponse, float]:
-        nonlocal evaluations
-        evaluations += 1
-        trial = replace(
-            base,
-            deviatoric_compliance_scale=float(np.exp(log_scales[0])),
-            volume_compliance_scale=float(np.exp(log_scales[1])),
-        )
-        response = pbd_compression(mesh, materials, trial, depth_m=depth_m)
-        force, lesions, _ = _mismatch(fe, response)
-        penalty = 0.0 if response.status is StepStatus.OK else 1.0
-        return response, abs(force) + lesions + penalty
-
-    start = np.log([base.deviatoric_compliance_scale, base.volume_compliance_scale])
-    best = start
-    if fit:
-        # The simplex spans the region where both scales matter (force is far more sensitive
-        # to the deviatoric scale, the lesions to the volume scale).
-        simplex = np.array([start, start + [-0.4, 0.0], start + [0.0, -0.7]])
-        result = minimize(
-            lambda z: evaluate(z)[1],
-            start,
-            method="Nelder-Mead",
-            options={
-                "xatol": 0.02,
-                "fatol": 0.002,
-                "maxfev": max_evaluations,
-                "initial_simplex": simplex,
-            },
-        )
-        best = result.x
-    pbd, _ = evaluate(best)
-    force, lesions, top_lesion = _mismatch(fe, pbd)
-    return CalibrationResult(
-        deviatoric_compliance_scale=float(np.exp(best[0])),
-        volume_compliance_scale=float(np.exp(best[1])),
-        fe=fe,
-        pbd=pbd,
-        force_mismatch=force,
-        lesion_mismatch=lesions,
-        top_lesion_mismatch=top_lesion,
-        evaluations=evaluations,
-    )

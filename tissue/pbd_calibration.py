@@ -1,0 +1,280 @@
+"""Calibration of the XPBD tissue (:mod:`tissue.pbd`) against the FE simulator.
+
+The same compression of the phantom's apex (the linear probe's face pressed down at the
+centre of the mesh's plan, ramped at a given speed, then held) run with the FE tissue
+(:func:`fe_compression`) and with :class:`~tissue.pbd.PBDContact` (:func:`pbd_compression`);
+:func:`calibrate_pbd` fits PBD's compliance scales to the FE's force and reports the residual
+mismatch in force and lesion displacements (see the "Calibration" part of :mod:`tissue.pbd`'s
+docstring for the values fitted and how).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tissue.errors import TissueInputError
+from tissue.material import TissueMaterials
+from tissue.mesh import TetMesh, boundary_faces
+from tissue.pbd import PBDConfig, PBDContact
+from tissue.phantom import breast_phantom
+from tissue.probe import LinearProbeFace, Probe, ProbeShape
+from tissue.simulator import SimulationConfig, TissueSimulator
+from tissue.status import SEVERITY, StepStatus
+
+
+@dataclass(frozen=True)
+class CompressionResponse:
+    """A tissue's response after a compression of the phantom's apex.
+
+    Attributes:
+        force_n: normal reaction force on the probe, along +z [N].
+        lesion_displacements_m: landmark displacements from rest [m], (landmark_count, 3).
+        status: the worst step status met.
+        step_ms: median wall time of a step [ms].
+    """
+
+    force_n: float
+    lesion_displacements_m: NDArray[np.float64]
+    status: StepStatus
+    step_ms: float
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """What :func:`calibrate_pbd` measured.
+
+    Attributes:
+        deviatoric_compliance_scale, volume_compliance_scale: the fitted (or evaluated) scales.
+        fe: the FE reference response. pbd: the PBD response with those scales.
+        force_mismatch: (F_pbd - F_fe) / F_fe, signed.
+        lesion_mismatch: |u_pbd - u_fe| / |u_fe| over all landmark displacements (Frobenius).
+        top_lesion_mismatch: the same for the lesion the FE moves most (the one under the probe).
+        evaluations: PBD runs made.
+    """
+
+    deviatoric_compliance_scale: float
+    volume_compliance_scale: float
+    fe: CompressionResponse
+    pbd: CompressionResponse
+    force_mismatch: float
+    lesion_mismatch: float
+    top_lesion_mismatch: float
+    evaluations: int
+
+    def summary(self) -> str:
+        """A few lines for logs and the module docstring."""
+        top = int(np.argmax(np.linalg.norm(self.fe.lesion_displacements_m, axis=1)))
+        return (
+            f"scales: deviatoric {self.deviatoric_compliance_scale:.4f}, volume "
+            f"{self.volume_compliance_scale:.4f} ({self.evaluations} PBD runs)\n"
+            f"force: FE {self.fe.force_n:.4f} N, PBD {self.pbd.force_n:.4f} N "
+            f"({100 * self.force_mismatch:+.2f} %)\n"
+            f"lesion {top + 1} displacement [mm]: FE "
+            f"{np.round(1e3 * self.fe.lesion_displacements_m[top], 2).tolist()}, PBD "
+            f"{np.round(1e3 * self.pbd.lesion_displacements_m[top], 2).tolist()} "
+            f"({100 * self.top_lesion_mismatch:.1f} %)\n"
+            f"all lesions: |u_pbd - u_fe| / |u_fe| = {100 * self.lesion_mismatch:.1f} %\n"
+            f"step: FE {self.fe.step_ms:.1f} ms, PBD {self.pbd.step_ms:.2f} ms"
+        )
+
+
+def _face_pose_and_footprint(
+    mesh: TetMesh, face: ProbeShape, points: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+    """The face pressing down at the centre of the mesh's plan: origin at the height of the
+    highest of ``points`` under its outline, quaternion, and the indices of those points."""
+
+    centre = 0.5 * (mesh.nodes[:, :2].min(axis=0) + mesh.nodes[:, :2].max(axis=0))
+    probe = Probe.looking_along(face, (centre[0], centre[1], 0.0), (0.0, 0.0, -1.0))
+    # A point lies under the outline if it is inside the probe once lifted into the probe's
+    # body: the face presses along -z, so its body is above, at z in (0, thickness).
+    lifted = points.copy()
+    body_depth = float(-face.surface()[0][:, 1].min())
+    lifted[:, 2] = 0.5 * body_depth
+    distance, _ = probe.signed_distance_world(lifted)
+    under = np.flatnonzero(distance < 0.0)
+    if under.size == 0:
+        raise TissueInputError("no surface point lies under the probe face at the mesh's centre")
+    top = float(points[under, 2].max())
+    return np.array([centre[0], centre[1], top]), probe.quat_wxyz.copy(), under
+
+
+def _ramp_depths(depth_m: float, speed_m_s: float, hold_s: float, dt: float) -> list[float]:
+    ramp = math.ceil(depth_m / (speed_m_s * dt) - 1e-9)
+    hold = round(hold_s / dt)
+    return [min(depth_m, (k + 1) * speed_m_s * dt) for k in range(ramp)] + [depth_m] * hold
+
+
+def fe_compression(
+    mesh: TetMesh,
+    materials: TissueMaterials | None = None,
+    depth_m: float = 0.01,
+    speed_m_s: float = 0.01,
+    hold_s: float = 0.5,
+    tissue_dt: float = 0.02,
+) -> CompressionResponse:
+    """The FE reference: the linear probe face pressed into the apex by prescribed nodes.
+
+    Every boundary node under the face's outline is held at the face's height along z only
+    (frictionless) from the step the face reaches it (robust mode: Newton, stable neo-Hookean,
+    as ``agents/tissue_demo.py``); the force is minus their reaction. The face moves down at
+    ``speed_m_s`` to ``depth_m`` below first contact, then holds ``hold_s``.
+    """
+
+    sim = TissueSimulator(mesh, materials, SimulationConfig(tissue_dt=tissue_dt, mode="robust"))
+    boundary = np.unique(boundary_faces(mesh.tets))
+    origin, _, under = _face_pose_and_footprint(mesh, LinearProbeFace(), mesh.nodes[boundary])
+    candidates = boundary[under]
+    rest = sim.landmark_positions()
+    held = np.zeros(0, dtype=np.int64)
+    worst = StepStatus.OK
+    times = []
+    force = 0.0
+    for depth in _ramp_depths(depth_m, speed_m_s, hold_s, tissue_dt):
+        face_z = origin[2] - depth
+        held = np.union1d(held, candidates[sim.positions[candidates, 2] >= face_z])
+        sim.prescribe(held, np.array([0.0, 0.0, face_z]), axes=(2,))
+        result = sim.step()
+        times.append(result.compute_ms)
+        worst = max(worst, result.status, key=_severity)
+        force = float(-result.reaction_force_n(held)[2]) if held.size else 0.0
+    return CompressionResponse(
+        force_n=force,
+        lesion_displacements_m=sim.landmark_positions() - rest,
+        status=worst,
+        step_ms=float(np.median(times)),
+    )
+
+
+def pbd_compression(
+    mesh: TetMesh,
+    materials: TissueMaterials | None = None,
+    config: PBDConfig | None = None,
+    depth_m: float = 0.01,
+    speed_m_s: float = 0.01,
+    hold_s: float = 0.5,
+) -> CompressionResponse:
+    """The same compression as :func:`fe_compression` with :class:`PBDContact`.
+
+    The :class:`~tissue.probe.LinearProbeFace` starts touching the highest contact-surface
+    point under its outline and moves along -z (the force is the wrench's z component).
+    """
+
+    face = LinearProbeFace()
+    model = PBDContact(mesh, face, materials, config)
+    origin, quat, _ = _face_pose_and_footprint(mesh, face, model.contact_point_positions)
+    rest = model.landmark_positions()
+    worst = StepStatus.OK
+    times = []
+    force = 0.0
+    for depth in _ramp_depths(depth_m, speed_m_s, hold_s, model.dt):
+        result = model.step(origin - np.array([0.0, 0.0, depth]), quat)
+        times.append(result.compute_ms)
+        worst = max(worst, result.status, key=_severity)
+        force = float(result.force_world[2])
+    return CompressionResponse(
+        force_n=force,
+        lesion_displacements_m=model.landmark_positions() - rest,
+        status=worst,
+        step_ms=float(np.median(times)),
+    )
+
+
+def _severity(status: StepStatus) -> int:
+
+    return SEVERITY[status]
+
+
+def _mismatch(fe: CompressionResponse, pbd: CompressionResponse) -> tuple[float, float, float]:
+    """(signed force mismatch, all-lesion displacement mismatch, top-lesion mismatch)."""
+    u_fe = fe.lesion_displacements_m
+    u_pbd = pbd.lesion_displacements_m
+    force = (pbd.force_n - fe.force_n) / fe.force_n
+    lesions = float(np.linalg.norm(u_pbd - u_fe) / np.linalg.norm(u_fe))
+    top = int(np.argmax(np.linalg.norm(u_fe, axis=1)))
+    top_lesion = float(np.linalg.norm(u_pbd[top] - u_fe[top]) / np.linalg.norm(u_fe[top]))
+    return force, lesions, top_lesion
+
+
+def calibrate_pbd(
+    level: int = 4126,
+    materials: TissueMaterials | None = None,
+    config: PBDConfig | None = None,
+    depth_m: float = 0.01,
+    fit: bool = True,
+    max_evaluations: int = 40,
+) -> CalibrationResult:
+    """Fit (or check) the PBD compliance scales against the FE on the built-in phantom.
+
+    Procedure: run :func:`fe_compression` once (the reference), then minimise
+    |force mismatch| + all-lesion displacement mismatch over the logarithms of the two
+    compliance scales with Nelder-Mead, starting from ``config``'s scales (each evaluation
+    one :func:`pbd_compression`, about 0.3 s at level 4126). With ``fit=False`` only
+    ``config``'s scales are evaluated (what the slow test does with the stored constants).
+
+    Args:
+        level: the phantom level (tet count), see :func:`tissue.phantom.breast_phantom`.
+        materials: tissue materials; default E = 2850 Pa, nu = 0.49.
+        config: PBD settings; the scales in it are the starting point (or the ones checked).
+        depth_m: compression depth from first contact [m].
+        fit: fit the scales (True) or only evaluate ``config`` (False).
+        max_evaluations: Nelder-Mead's budget of PBD runs.
+
+    Returns:
+        the scales and the measured responses and mismatches.
+    """
+
+    from scipy.optimize import minimize
+
+    mesh = breast_phantom(level)
+    base = config or PBDConfig()
+    fe = fe_compression(mesh, materials, depth_m=depth_m, tissue_dt=base.tissue_dt)
+    evaluations = 0
+
+    def evaluate(log_scales: NDArray[np.float64]) -> tuple[CompressionResponse, float]:
+        nonlocal evaluations
+        evaluations += 1
+        trial = replace(
+            base,
+            deviatoric_compliance_scale=float(np.exp(log_scales[0])),
+            volume_compliance_scale=float(np.exp(log_scales[1])),
+        )
+        response = pbd_compression(mesh, materials, trial, depth_m=depth_m)
+        force, lesions, _ = _mismatch(fe, response)
+        penalty = 0.0 if response.status is StepStatus.OK else 1.0
+        return response, abs(force) + lesions + penalty
+
+    start = np.log([base.deviatoric_compliance_scale, base.volume_compliance_scale])
+    best = start
+    if fit:
+        # The simplex spans the region where both scales matter (force is far more sensitive
+        # to the deviatoric scale, the lesions to the volume scale).
+        simplex = np.array([start, start + [-0.4, 0.0], start + [0.0, -0.7]])
+        result = minimize(
+            lambda z: evaluate(z)[1],
+            start,
+            method="Nelder-Mead",
+            options={
+                "xatol": 0.02,
+                "fatol": 0.002,
+                "maxfev": max_evaluations,
+                "initial_simplex": simplex,
+            },
+        )
+        best = result.x
+    pbd, _ = evaluate(best)
+    force, lesions, top_lesion = _mismatch(fe, pbd)
+    return CalibrationResult(
+        deviatoric_compliance_scale=float(np.exp(best[0])),
+        volume_compliance_scale=float(np.exp(best[1])),
+        fe=fe,
+        pbd=pbd,
+        force_mismatch=force,
+        lesion_mismatch=lesions,
+        top_lesion_mismatch=top_lesion,
+        evaluations=evaluations,
+    )
