@@ -151,8 +151,14 @@ def test_quasi_static_lagrange_relaxes_a_step_no_split_can_solve(
     assert refused, "the static solver was never refused: the case does not test relaxation"
     assert result.diagnostics["relaxation_steps"] >= 1
     assert result.time_s == pytest.approx(expected.time_s)
-    np.testing.assert_allclose(result.force_world, expected.force_world, rtol=1e-4, atol=1e-7)
-    assert np.abs(relaxed.sim.positions - plain.sim.positions).max() < 1e-7
+    # Both converged to the Newton tolerance on a kept factorisation: the lateral components
+    # (zero but for that tolerance, ~1e-4 of the normal one) agree to 1e-5 of the force ...
+    scale = float(np.linalg.norm(expected.force_world))
+    np.testing.assert_allclose(
+        result.force_world, expected.force_world, rtol=1e-4, atol=1e-5 * scale
+    )
+    # and the positions to the Newton tolerance (1e-4) of the 2 mm press.
+    assert np.abs(relaxed.sim.positions - plain.sim.positions).max() < 1e-4 * 0.002
 
 
 def test_lagrange_continues_from_a_saved_state_as_if_never_stopped(block) -> None:
@@ -179,28 +185,40 @@ def test_lagrange_continues_from_a_saved_state_as_if_never_stopped(block) -> Non
     # Measured: identical here; resumed with zero velocities instead, 2.8e-7 m apart (the
     # press moves the nodes 3 mm), which this bound must catch.
     assert np.abs(resumed.sim.positions - whole.sim.positions).max() < 3e-8
-    np.testing.assert_allclose(result.force_world, expected.force_world, rtol=1e-5)
+    # The lateral components (1 % of the normal one: the block mesh is not symmetric) differ by
+    # 3e-6 of the force: the rebuilt kept factorisation's inexact Newton steps.
+    scale = float(np.linalg.norm(expected.force_world))
+    np.testing.assert_allclose(
+        result.force_world, expected.force_world, rtol=1e-5, atol=1e-5 * scale
+    )
     with pytest.raises(NotImplementedError, match="'lm'"):
         _model("penalty", block, shape).saved_state()
     with pytest.raises(TissueInputError, match="another mesh"):
         resumed.load_state({**state, "warm_n": np.zeros(3)})
 
 
+@pytest.mark.parametrize("keep", [False, True])
 def test_quasi_static_lagrange_gives_up_cleanly_when_its_first_exact_tangent_fails(
-    block, monkeypatch: pytest.MonkeyPatch
+    block, monkeypatch: pytest.MonkeyPatch, keep: bool
 ) -> None:
     """The static solve after a relaxation (exact tangent from its first iteration, to be
     retried if it fails) gives up at once when that tangent is indefinite at every
     augmentation. Before, it then crashed (the study's 12,861-tet reference, lesion 2: a
     ValueError from forces of length 0 against the step's contact rows); now it reports not
     converged, with the forces it started from. The solver is made to call every exact
-    tangent indefinite here."""
+    tangent indefinite here, refactorising every iteration and keeping a factorisation."""
+    import tissue.contact.lagrange as lagrange
+
+    monkeypatch.setattr(lagrange, "_KEEP_FACTORIZATION_UNKNOWNS", 0 if keep else 10**9)
     shape = SphereProbe(0.01)
     model = _model("lm", block, shape)
     _press(model, shape, 0.002, 2, SIZE / 2)
     solver = model.sim.integrator.solver
-    factorize = solver.factorize
-    monkeypatch.setattr(solver, "factorize", lambda system: (factorize(system)[0], True))
+    if keep:  # every refreshed kept factorisation reads as not positive definite
+        monkeypatch.setattr(solver.factorizer, "factorize_preconditioner", lambda *_: None)
+    else:
+        factorize = solver.factorize
+        monkeypatch.setattr(solver, "factorize", lambda system: (factorize(system)[0], True))
     started = model._warm.copy()
     assert started.sum() > 0.0, "the press is not in contact: the case tests nothing"
     status, points, on_probe, _ = model._robust_step(

@@ -28,7 +28,7 @@ columns A^-1 H^T, never all held at once (thousands of constraints on a fine mes
 take GBs), and the correction is one more solve.
 
 ``robust`` mode on all but the smallest systems (at least ``_KEEP_FACTORIZATION_UNKNOWNS``,
-every phantom level from 4,126 tets up) keeps a (single-precision) factorisation F across
+every phantom level from 1,363 tets up) keeps a (single-precision) factorisation F across
 Newton iterations and steps instead:
 
 - solves with A are CG preconditioned by F (``reuse`` solves; F is refreshed when CG
@@ -84,13 +84,15 @@ from tissue.status import StepStatus
 
 # Robust steps on systems with at least this many unknowns keep a factorisation across
 # Newton iterations and steps (see the module docstring); smaller ones refactorise every
-# iteration. Measured here on whole study cells (robust LM, lesion 1, 30 mm, idle machine,
-# one run each, wall time kept / refactorised): 623 tets (630 unknowns) 3 / 2 s; 2,539
-# (2,025) 6 / 6 s; 4,126 (3,123) 7 / 10 s; 12,861 (8,970) 33 / 60 s; 26,220 (16,239) 107 /
-# 234 s, tracked points within 6e-5 mm; 105,004 (59,436) 1.26 / 5.37 s per step in contact.
-# The threshold sits between the levels so that none is near it: it was 60,000 once, and the
-# 105k level's 59,436 unknowns fell under it by 1 %.
-_KEEP_FACTORIZATION_UNKNOWNS = 2_500
+# iteration. Measured on whole study cells (robust LM, lesion 1 unless said, 30 mm, one run
+# each, wall time refactorised / kept, loaded machine): 623 tets (417 unknowns) 2.4 / 2.3 s
+# (the bench's apex press: median step 2.8-3.2 / 3.1-3.3 ms); 1,363 (834) 2.8 / 2.6 s; 2,539
+# (1,374), lesion 3, 5.2 / 4.2 s; 4,126 (2,406) 12.2 / 6.6 s and lesion 7 9.3 / 5.1 s, the
+# tracked points and forces the same to 1e-4 mm and 1e-4 N; earlier, on the phantom before its
+# lesions moved: 12,861 (8,970) 60 / 33 s; 26,220 (16,239) 234 / 107 s; 105,004 (59,436) 5.37
+# / 1.26 s per step in contact. The threshold sits between the two coarsest levels, away from
+# both: it was 2,500 once, and the re-meshed 4,126-tet level's 2,406 unknowns fell under it.
+_KEEP_FACTORIZATION_UNKNOWNS = 600
 # With a kept factorisation, quasi-static robust Newton keeps the projected (PSD) tangent for
 # this many iterations of a step, then takes the exact one with the contact terms: a change
 # of tangent costs a refactorisation (the kept F must be of the tangent W~ is built from),
