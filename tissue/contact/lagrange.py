@@ -33,8 +33,9 @@ Newton iterations and steps instead:
 
 - solves with A are CG preconditioned by F (``reuse`` solves; F is refreshed when CG
   stalls), to the inexact-Newton tolerance;
-- W~ = H F^-1 H^T is assembled from 3 x 3 blocks between surface points cached for F (a
-  point costs three solves the first time it is seen under F, nothing afterwards);
+- W~ = H F^-1 H^T is a submatrix of entries between surface points cached for F
+  (:class:`~tissue.contact.compliance.KeptCompliance`: a point costs one solve the first
+  time it is seen under F, and again only once its contact normal has turned);
 - the response is iterated to the exact W: lambda' = LCP(W~, gaps(lambda) - W~ lambda), the
   gaps evaluated with A; with F = A one round is exact, and F is refreshed when a few
   rounds do not bring the gaps within the contact tolerance of the prediction;
@@ -42,7 +43,7 @@ Newton iterations and steps instead:
   free solve, so W~'s error acts only on their change: at 26,220 tets (apex press, 42
   steps) 1.5 rounds per Newton iteration instead of 2.1, and 3 factorisations instead of 14.
 
-On smaller systems refactorising every iteration costs the same or less (see the
+On the smallest systems refactorising every iteration costs the same or less (see the
 constant's comment).
 
 lambda are the contact forces. A small regularisation eps I on W keeps PGS well posed when
