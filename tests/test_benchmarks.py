@@ -1,0 +1,77 @@
+"""The benchmark commands keep their contracts: the fields the issues name, in the JSON they
+write, with values that make physical sense. Timings are not judged here (a shared machine);
+the benchmarks' own tables hold the targets."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from agents.cli import main
+from tissue.contact.penalty import PenaltyParams
+
+
+def _run(args: list[str], json_path: Path) -> list[dict]:
+    assert main([*args, "--json", str(json_path)]) == 0
+    return json.loads(json_path.read_text())
+
+
+def test_bench_contact_writes_every_method_and_mode(tmp_path: Path) -> None:
+    records = _run(["bench", "contact", "--levels", "623"], tmp_path / "contact.json")
+    assert {(r["method"], r["mode"]) for r in records} == {
+        (method, mode)
+        for method in ("penalty", "lm", "prescribed", "pbd")
+        for mode in ("paper", "robust")
+    }
+    for record in records:
+        name = f"{record['method']}/{record['mode']}"
+        assert record["tets"] == 571, name
+        for key in ("step_ms", "step_ms_mean", "step_ms_max"):
+            assert math.isfinite(record[key]) and record[key] > 0.0, (name, key)
+        assert record["step_ms"] <= record["step_ms_max"], name
+        assert record["steps_in_contact"] == 51, name  # the first step in contact and 50 more
+        assert record["status_counts"] == {"ok": record["steps_in_contact"]}, name
+        assert record["force_n"] > 0.0, name  # the tissue pushes the probe back up
+        assert record["lesion1_displacement_m"] > 1e-3, name  # a 10 mm press moves lesion 1
+        assert not record["stopped_by_wall_budget"], name
+    by = {(r["method"], r["mode"]): r for r in records}
+    # Exact contact: LM leaves no penetration; augmented penalty stays within its tolerance.
+    assert by["lm", "robust"]["penetration_max_m"] < 1e-6
+    penalty = by["penalty", "robust"]["penetration_max_m"]
+    assert 0.0 < penalty <= PenaltyParams().penetration_tolerance_m
+    # Converged FE methods with exact contact agree on the force (measured 2.4 % apart).
+    assert by["penalty", "robust"]["force_n"] == pytest.approx(
+        by["lm", "robust"]["force_n"], rel=0.05
+    )
+
+
+def test_bench_tissue_reports_a_converged_newton_step(tmp_path: Path) -> None:
+    (record,) = _run(
+        ["bench", "tissue", "--levels", "623", "--repeats", "1"], tmp_path / "tissue.json"
+    )
+    assert record["tets"] == 571
+    for key in ("assembly_ms", "paper_step_ms", "direct_factor_ms", "newton_step_ms"):
+        assert math.isfinite(record[key]) and record[key] > 0.0, key
+    assert record["newton_status"] == "ok"
+    assert record["newton_residual_max"] <= 1e-4  # the robust mode's Newton tolerance
+    assert 0.0 <= record["cg25_energy_error"] < 1.0
+
+
+def test_bench_peer_compares_ours_with_mujoco_flex(tmp_path: Path) -> None:
+    (record,) = _run(
+        ["bench", "peer", "--levels", "623", "--sim-seconds", "0.2"], tmp_path / "peer.json"
+    )
+    assert record["tets"] == 571
+    assert record["mujoco_status"] == "ok"
+    for mode in ("paper", "robust"):
+        ours = record["ours_ms_per_sim_s"][mode]
+        assert ours > 0.0
+        assert record["ratio"][mode] == pytest.approx(record["mujoco_ms_per_sim_s"] / ours)
+    # Both sides are scored against our converged reference: robust LM follows it closely,
+    # MuJoCo's flex (Saint Venant-Kirchhoff, soft contact) less so, but finitely.
+    assert record["ours_lesion_error_m"]["robust"] < 1e-4
+    assert math.isfinite(record["mujoco_lesion_error_m"])
+    assert record["reference_lesion1_displacement_m"] > 1e-3 * 0.2  # 2 mm of travel moves it
