@@ -13,8 +13,9 @@ Solvers:
   iterations are far from converged; the report says how far (``relative_residual``).
   Elasticity matrices are made of 3x3 node blocks: CG then multiplies with the upper
   blocks only (half the memory traffic, in double precision).
-* ``direct``: a sparse Cholesky-type factorisation. Intel MKL Pardiso (located through
-  ``pypardiso``, which installs from wheels with pip alone, and called directly; SPD mode),
+* ``direct``: a sparse Cholesky-type factorisation. Intel MKL Pardiso (:mod:`tissue.pardiso`:
+  located through ``pypardiso``, which installs from wheels with pip alone, and called
+  directly; SPD mode),
   with a symmetric-indefinite factorisation as fallback when the matrix is not positive
   definite, and scipy's SuperLU where MKL is unavailable.
 * ``reuse``: CG preconditioned by the last factorisation, refactorising only when CG
