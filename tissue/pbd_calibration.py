@@ -3,9 +3,10 @@
 The same compression of the phantom's apex (the linear probe's face pressed down at the
 centre of the mesh's plan, ramped at a given speed, then held) run with the FE tissue
 (:func:`fe_compression`) and with :class:`~tissue.pbd.PBDContact` (:func:`pbd_compression`);
-:func:`calibrate_pbd` fits PBD's compliance scales to the FE's force and reports the residual
-mismatch in force and lesion displacements (see the "Calibration" part of :mod:`tissue.pbd`'s
-docstring for the values fitted and how).
+:func:`calibrate_pbd` fits PBD's compliance scales to the FE's force and lesion
+displacements (or, with ``fit=False``, evaluates the scales given) and reports the residual
+mismatch (see the "Calibration" part of :mod:`tissue.pbd`'s docstring for the values fitted
+and how).
 """
 
 from __future__ import annotations
@@ -66,7 +67,7 @@ class CalibrationResult:
     evaluations: int
 
     def summary(self) -> str:
-        """A few lines for logs and the module docstring."""
+        """A few lines for logs and :mod:`tissue.pbd`'s docstring."""
         top = int(np.argmax(np.linalg.norm(self.fe.lesion_displacements_m, axis=1)))
         return (
             f"scales: deviatoric {self.deviatoric_compliance_scale:.4f}, volume "
