@@ -843,7 +843,7 @@ class LagrangeContact(FEContactModel):
                         if may_retry:
                             break
                     chord_step = chord is not None and project
-                    if chord is not None and chord_step:
+                    if chord is not None and project:
                         system = chord.with_rhs(-gradient)
                     else:
                         system = potential.hessian_system(y, -gradient, project=project)
