@@ -141,6 +141,37 @@ def test_kept_factorization_is_corrected_for_dofs_constrained_since() -> None:
     assert report.converged and not report.factorized and report.iterations <= 2
 
 
+def test_kept_factorization_correction_outgrows_its_column_cap(monkeypatch) -> None:
+    """Dofs constrained, released and others constrained under one kept factor: the columns
+    held outnumber the cap on the active set (the column array grows), and each solve stays
+    exact without a refactorisation."""
+    import tissue.solvers as solvers
+
+    monkeypatch.setattr(solvers, "MAX_CONSTRAINED_SINCE", 30)
+    rng = np.random.default_rng(5)
+    matrix = _laplacian_3d(7, 0.05)
+    n = matrix.shape[0]
+    before = np.zeros(n, dtype=bool)
+    before[:20] = True
+    first, second = before.copy(), before.copy()
+    first[40:65] = True  # 25 dofs each, 50 columns in all against a cap of 30
+    second[100:125] = True
+    values = rng.standard_normal(n)
+    solver = LinearSolver(LinearSolverConfig(kind="reuse"))
+    solver.single_precision_preconditioner = False
+    solver.solve(ConstrainedSystem(matrix.copy(), rng.standard_normal(n), before, values))
+    for constrained in (first, second, first):
+        rhs = rng.standard_normal(n)
+        x, report = solver.solve(
+            ConstrainedSystem(matrix.copy(), rhs, constrained, values), tolerance=1e-10
+        )
+        np.testing.assert_allclose(
+            x, _reference(matrix, rhs, constrained, values), rtol=1e-8, atol=1e-8
+        )
+        assert report.converged and not report.factorized and report.iterations <= 2
+    assert solver._since is not None and solver._since.count == 50
+
+
 def test_reuse_refactorises_once_extra_cg_iterations_cost_a_factorisation() -> None:
     """On a drifting matrix (a Newton run's tangents), ``reuse`` refactorises once the CG
     iterations beyond one per solve add up to ``reuse_refresh_factor`` sqrt(n), before CG
