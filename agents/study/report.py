@@ -280,11 +280,14 @@ def plot_accuracy_vs_time(path: Path, rows: list[dict[str, Any]]) -> None:
             [points[i][0] for i in front], [points[i][1] for i in front], "k--", lw=1,
             label="Pareto front",
         )  # fmt: skip
-        for i in front:
+        for rank, i in enumerate(front):
             row = usable[i]
+            # Above and below the front in turn: neighbours on the front often share an
+            # error (the finest level's robust cells all near 0) and their labels overlapped.
             axis.annotate(
                 f"{METHOD_LABEL[row['method']]} {row['config']} {row['tets']:,}",
-                points[i], fontsize=7, xytext=(4, 4), textcoords="offset points",
+                points[i], fontsize=7, xytext=(4, 4 if rank % 2 == 0 else -11),
+                textcoords="offset points",
             )  # fmt: skip
     for method in METHOD_ORDER:
         axis.scatter([], [], color=METHOD_COLOUR[method], label=METHOD_LABEL[method])
