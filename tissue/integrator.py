@@ -659,10 +659,11 @@ class ImplicitIntegrator:
             # defaults) to the elastic one, which covers what the projection would clamp in
             # all but the most compressed tets, and the fallback below projects where it
             # does not. The projection costs 2.5 x a plain assembly (193 against 77 ms at
-            # 176,506 tets); measured on `bench contact`'s apex press there (one run each,
-            # loaded): penalty median step 949 -> 822 ms, prescribed 702 -> 625 ms, the same
-            # Newton and CG iterations and forces; the published scene's lesion 1 path
-            # (penalty, 9,295 tets) ends within 7e-9 m of the projected runs.
+            # 176,506 tets); on `bench contact`'s apex press there, median step, penalty 809
+            # -> 726 / 755 ms idle (949 -> 822 loaded), prescribed 503 -> 514 / 502 idle (it
+            # projects in few steps), the same Newton and CG iterations and forces; the
+            # published scene's lesion 1 path (penalty, 9,295 tets) ends within 7e-9 m of the
+            # projected run.
             exact_first = not quasi and cfg.rayleigh_stiffness > 0.0
             project = bool(cfg.project_psd) and relative > PROJECTION_SWITCH and not exact_first
             # Inexact Newton: solve only as accurately as the current residual deserves, and
