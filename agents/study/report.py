@@ -268,10 +268,16 @@ def plot_accuracy_vs_time(path: Path, rows: list[dict[str, Any]]) -> None:
     figure, axis = plt.subplots(figsize=(7.5, 5))
     markers = {"paper": "o", "robust": "s"}
     for row in usable:
+        # Hollow where the cells did not complete on average: their error counts only the
+        # depths reached, so a hollow point's accuracy is not the whole experiment's (where
+        # the paper configuration stops being usable as the mesh is refined).
+        colour = METHOD_COLOUR[row["method"]]
+        complete = row["mean_stability_percent"] >= 100.0
         axis.scatter(
-            row["median_step_ms"], row["median_error_mm"], color=METHOD_COLOUR[row["method"]],
-            marker=markers.get(row["config"], "^"), s=20 + 12 * np.log10(row["tets"]),
-            alpha=0.75, edgecolors="none",
+            row["median_step_ms"], row["median_error_mm"], marker=markers.get(row["config"], "^"),
+            s=20 + 12 * np.log10(row["tets"]), alpha=0.75,
+            facecolors=colour if complete else "none", edgecolors="none" if complete else colour,
+            linewidths=0 if complete else 1.5,
         )  # fmt: skip
     points = [(r["median_step_ms"], r["median_error_mm"]) for r in usable]
     front = sorted(pareto_front(points), key=lambda i: points[i][0])
@@ -293,6 +299,8 @@ def plot_accuracy_vs_time(path: Path, rows: list[dict[str, Any]]) -> None:
         axis.scatter([], [], color=METHOD_COLOUR[method], label=METHOD_LABEL[method])
     for config, marker in markers.items():
         axis.scatter([], [], color="grey", marker=marker, label=config)
+    axis.scatter([], [], facecolors="none", edgecolors="grey", linewidths=1.5,
+                 label="mean stability < 100 %")  # fmt: skip
     axis.axvline(20, color="tab:blue", lw=1, ls=":")
     axis.axvline(40, color="black", lw=1, ls=":")
     axis.set_xscale("log")
