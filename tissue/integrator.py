@@ -640,6 +640,8 @@ class ImplicitIntegrator:
         history: list[float] = []
         converged = False
         iterations = 0
+        # See the projection rule in the loop: dynamic steps with stiffness damping.
+        exact_first = not quasi and cfg.rayleigh_stiffness > 0.0
         while True:
             mismatch = float(np.max(np.abs(targets - y[dofs]))) if dofs.size else 0.0
             relative = math.sqrt(_free_square_norm(gradient, ~free)) / max(scale, scale_floor)
@@ -664,7 +666,6 @@ class ImplicitIntegrator:
             # projects in few steps), the same Newton and CG iterations and forces; the
             # published scene's lesion 1 path (penalty, 9,295 tets) ends within 7e-9 m of the
             # projected run.
-            exact_first = not quasi and cfg.rayleigh_stiffness > 0.0
             project = bool(cfg.project_psd) and relative > PROJECTION_SWITCH and not exact_first
             # Inexact Newton: solve only as accurately as the current residual deserves, and
             # never beyond what brings the residual well under the Newton tolerance.
