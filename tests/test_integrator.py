@@ -247,3 +247,42 @@ def test_continued_steps_start_from_extrapolation_and_converge_to_the_same_state
     # changes; with a refreshed factor each step here needs one or two either way).
     assert iterations[0] <= iterations[1]
     np.testing.assert_allclose(continued.positions, restarted.positions, atol=1e-9)
+
+
+def test_paper_step_reuses_its_end_evaluation_only_where_it_starts() -> None:
+    """A paper step keeps its end-of-step evaluation (with the tangent) for the next step;
+    the next step takes it only if it starts at exactly those positions, and the trajectory
+    is the same, bit for bit, as one that evaluates afresh every step."""
+    size = 0.02
+    mesh = block_mesh((size, size, size / 2), (4, 4, 2), fix="z=min")
+    materials = TissueMaterials(tissue=NeoHookean(E, NU))
+    top = nodes_on_plane(mesh.nodes, "z=max")
+    config = SimulationConfig(mode="paper", linear_solver="direct")
+    kept = TissueSimulator(mesh, materials, config)
+    fresh = TissueSimulator(mesh, materials, config)
+    evaluations = 0
+    evaluate = kept.integrator.elasticity.evaluate
+
+    def counted(*args, **kwargs):
+        nonlocal evaluations
+        evaluations += 1
+        return evaluate(*args, **kwargs)
+
+    kept.integrator.elasticity.evaluate = counted  # type: ignore[method-assign]
+    for i in range(1, 6):
+        target = mesh.nodes[top] + [0.0, 0.0, -0.0002 * i]
+        kept.prescribe(top, target)
+        first = kept.step()
+        fresh.prescribe(top, target)
+        fresh.integrator._end_state = None  # nothing kept: evaluates at the start
+        second = fresh.step()
+        np.testing.assert_array_equal(first.positions, second.positions)
+        assert first.elastic_energy_j == second.elastic_energy_j
+    assert evaluations == 5  # one a step (the model's first: at rest, when it was built)
+    # Moved from outside: the kept evaluation is of other positions and is not used.
+    moved = kept.positions + 1e-5
+    kept.set_state(moved, kept.velocities)
+    fresh.set_state(moved, fresh.velocities)
+    fresh.integrator._end_state = None
+    np.testing.assert_array_equal(kept.step().positions, fresh.step().positions)
+    assert evaluations == 7
