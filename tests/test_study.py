@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.study.report import pareto_front, stability_table, valid_errors
+from agents.study.report import complete_front, pareto_front, stability_table, valid_errors
 from agents.study.runner import RESULTS_FILE, read_results, run_study
 from agents.study.spec import Cell, StudyConfig, StudySpec
 from tissue.contact.base import ContactMethod
@@ -323,6 +323,22 @@ def test_stability_table_marks_cells_with_fewer_lesions() -> None:
 def test_pareto_front_marks_undominated_points() -> None:
     points = [(1.0, 5.0), (2.0, 2.0), (3.0, 3.0), (10.0, 1.0), (2.0, 6.0)]
     assert pareto_front(points) == [0, 1, 3]
+
+
+def test_accuracy_front_leaves_out_points_whose_cells_broke_off() -> None:
+    def row(ms: float, mm: float, stability: float) -> dict:
+        return {"median_step_ms": ms, "median_error_mm": mm, "mean_stability_percent": stability}
+
+    # The broken-off point (index 1) is faster and more accurate than the first complete one;
+    # it is no option, so it neither sits on the front nor pushes that one off it.
+    rows = [
+        row(10.0, 1.0, 100.0),
+        row(5.0, 0.5, 62.0),
+        row(30.0, 2.0, 100.0),
+        row(20.0, 0.2, 100.0),
+    ]
+    assert complete_front(rows) == [0, 3]
+    assert pareto_front([(r["median_step_ms"], r["median_error_mm"]) for r in rows]) == [1, 3]
 
 
 def test_cells_cover_every_method_and_configuration_in_level_order() -> None:
