@@ -19,6 +19,20 @@ over to the next step, so a steady press needs about one solve per step. The pen
 then falls to the tolerance without raising k_s, which keeps the system as well conditioned
 as the default k_s makes it (the paper's stability problem with stiff penalties).
 
+Robust steps converge only linearly where the probe's rounded rim presses hard, most likely
+because the springs' tangent freezes the normal, leaving out the exact tangent's -m d2g/dx2
+(m the point's force, g the signed distance; LM's quasi-static steps carry that term).
+Measured on the study's 176,506-tet cell, lesion 8, at 29-30 mm (4.5-4.8 N): Newton
+residuals contracted by ~0.66 per iteration with full steps and the exact elastic tangent,
+12-31 iterations a step, and those steps took 7-79 s (the 24 steps over 5 s were 37 % of
+the cell's 886 s; loaded machine).
+Tried and left: adding the term in robust mode. On the 4,126-tet cells it cut the most
+Newton iterations in a step (lesion 8: 12 -> 10; lesion 3: 19 -> 9; 12,861 tets, lesion 8:
+9 -> 7) but made steps fail and subdivide (2, 4 and 1 times, the slowest step 0.2 -> 1.5 /
+2.4 / 4.3 s), and on lesion 8 at 4,126 tets the press settled elsewhere at 30 mm (6.34 ->
+5.75 N, the lesion 2 mm away): the turning force destabilises the tissue's slide round the
+rim, as the exact tangent's full steps did for LM's dynamic steps.
+
 Limitations: the constraint is only approximately satisfied (penetration ~ force / k_s);
 a large k_s worsens the conditioning of the system (the paper's stability problem on fine
 meshes). The default k_s scales with the tissue's modulus and the surface's resolution
