@@ -102,7 +102,14 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     compress.add_argument("--method", default="lm", help="penalty | lm | prescribed | pbd")
     compress.add_argument("--mode", default="robust", help="paper | robust")
-    compress.add_argument("--online", action="store_true", help="prescribed: update contact set")
+    compress.add_argument(
+        "--online",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="prescribed: update the contact node set every step (default: on in robust "
+        "mode, as the study's robust configuration; off in paper mode, the set fixed at "
+        "first contact or the scene's own)",
+    )
     compress.add_argument("--json", type=Path, default=Path("compress.json"))
     compress.add_argument(
         "--case",

@@ -61,6 +61,16 @@ def spring_nodes_to_volume(mesh: TetMesh, spring_vertices: np.ndarray) -> tuple[
     return tuple(int(n) for n in np.unique(boundary[nearest]))
 
 
+def resolve_online(online: bool | None, method: str, mode: str) -> bool:
+    """Whether prescribed displacement updates its node set every step: as asked
+    (``--online`` / ``--no-online``), else as the mode's configuration has it (robust: online,
+    as in the study and the hard cases; paper: the set fixed beforehand). Other methods have
+    no node set: ``--online`` with them is an error (in :func:`agents.compress.build_model`)."""
+    if online is not None:
+        return online
+    return method == "prescribed" and mode == "robust"
+
+
 def run_compress_command(args: argparse.Namespace) -> int:
     """Validate the arguments, run the compression, write the JSON; returns the exit code."""
     settle = ACCURATE_SETTLE_STEPS if args.settle_steps is None else args.settle_steps
@@ -69,6 +79,7 @@ def run_compress_command(args: argparse.Namespace) -> int:
             f"--settle-steps must be a whole number of steps >= 1; got {settle} "
             f"(default {ACCURATE_SETTLE_STEPS}: a hold of up to 5 s at each depth)"
         )
+    online = resolve_online(args.online, args.method, args.mode)
     given_nodes = None
     if args.scene is not None:
         from tissue.paper_scene import load_paper_scene
@@ -80,7 +91,7 @@ def run_compress_command(args: argparse.Namespace) -> int:
                 f"{sorted(scene.probe_poses)}"
             )
         mesh = scene.mesh
-        if not args.online:  # the paper's a-priori contact set for this lesion
+        if args.method == "prescribed" and not online:  # the paper's set for this lesion
             given_nodes = spring_nodes_to_volume(mesh, scene.spring_nodes[args.lesion])
     else:
         mesh = _load_mesh(args)
@@ -88,7 +99,7 @@ def run_compress_command(args: argparse.Namespace) -> int:
     # default probe keeps that face and adds the probe's body behind it (see linear_probe).
     shape: ProbeShape = parse_probe_spec(args.probe or "face")
     model = build_model(
-        mesh, shape, args.method, args.mode, args.young, args.poisson, args.online, given_nodes
+        mesh, shape, args.method, args.mode, args.young, args.poisson, online, given_nodes
     )
     if args.scene is not None:
         if args.depths is not None or args.at is not None:
@@ -122,7 +133,7 @@ def run_compress_command(args: argparse.Namespace) -> int:
         "probe": shape.name,
         "speed_m_s": args.speed,
         "settle_steps": settle,
-        "online": bool(args.online),
+        "online": online,
     }
     write_json(record, args.json)
     print(f"written: {args.json} ({len(record['steps'])} steps)")

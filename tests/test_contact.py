@@ -443,6 +443,41 @@ def test_compress_command_holds_at_most_settle_steps(tmp_path) -> None:
     assert record["config"]["settle_steps"] == 3
 
 
+@pytest.mark.parametrize(
+    ("arguments", "online"),
+    [
+        ([], True),  # robust mode's configuration, as in the study and the hard cases
+        (["--mode", "paper"], False),  # the paper's set, fixed at first contact
+        (["--no-online"], False),
+        (["--mode", "paper", "--online"], True),
+    ],
+)
+def test_compress_prescribed_node_set_follows_the_mode_unless_told(
+    tmp_path, arguments: list[str], online: bool
+) -> None:
+    import json
+
+    from agents.cli import main
+
+    out = tmp_path / "run.json"
+    code = main(["compress", "--mesh", "623", "--method", "prescribed", "--depths", "0.004",
+                 "--settle-steps", "2", "--json", str(out), *arguments])  # fmt: skip
+    assert code == 0
+    assert json.loads(out.read_text())["config"]["online"] is online
+
+
+def test_compress_online_with_another_method_is_named(
+    tmp_path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from agents.cli import main
+
+    out = tmp_path / "never.json"
+    code = main(["compress", "--mesh", "623", "--method", "lm", "--online", "--json", str(out)])
+    assert code == 2
+    assert "--online applies to --method prescribed only" in capsys.readouterr().err
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("keep_columns", [True, False])
 def test_lagrange_compliance_cache_matches_its_definition(
     block, monkeypatch: pytest.MonkeyPatch, keep_columns: bool
