@@ -28,7 +28,7 @@ residuals contracted by ~0.66 per iteration with full steps and the exact elasti
 the cell's 886 s; loaded machine).
 Tried and left: adding the term in robust mode. On the 4,126-tet cells it cut the most
 Newton iterations in a step (lesion 8: 12 -> 10; lesion 3: 19 -> 9; 12,861 tets, lesion 8:
-9 -> 7) but made steps fail and subdivide (2, 4 and 1 times, the slowest step 0.2 -> 1.5 /
+9 -> 7) but made steps fail and subdivide (2, 4 and 1 times, the slowest step 0.2-0.3 -> 1.5 /
 2.4 / 4.3 s), and on lesion 8 at 4,126 tets the press settled elsewhere at 30 mm (6.34 ->
 5.75 N, the lesion 2 mm away): the turning force destabilises the tissue's slide round the
 rim, as the exact tangent's full steps did for LM's dynamic steps.
