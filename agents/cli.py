@@ -11,7 +11,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from tissue.errors import TissueInputError
+from tissue.errors import ConfigError, TissueInputError
 
 
 def _level(value: str) -> int:
@@ -157,6 +157,28 @@ def _build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# compress options a named hard case sets itself (its path, probe, material, node set).
+_CASE_SETS = (
+    "fixed_plane", "fixed_nodes", "lesion", "young", "poisson", "probe", "at", "direction",
+    "depths", "speed", "settle_steps", "online",
+)  # fmt: skip
+
+
+def _reject_options_a_case_sets(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """A clear error for ``compress --case`` with options the case would silently override."""
+    defaults = parser.parse_args(["compress"])
+    given = [
+        "--" + name.replace("_", "-")
+        for name in _CASE_SETS
+        if getattr(args, name) != getattr(defaults, name)
+    ]
+    if given:
+        raise ConfigError(
+            f"--case {args.case} sets its own path, probe, material and node set; drop "
+            f"{', '.join(given)} (only --mesh LEVEL, --scene, --method, --mode and --json apply)"
+        )
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``probegym`` console script."""
     parser = _build_parser()
@@ -169,6 +191,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "compress" and args.case is not None:
             from agents.hard_cases import run_catalogue
             from tissue.phantom import parse_level
+
+            _reject_options_a_case_sets(parser, args)
 
             level = None if args.mesh is None else parse_level(args.mesh)
             records = run_catalogue(

@@ -412,6 +412,7 @@ def test_bad_contact_input_is_named(block) -> None:
         (["--method", "fem"], "unknown contact method 'fem'"),
         (["--probe", "banana"], "banana"),
         (["--settle-steps", "0"], "--settle-steps must be a whole number of steps >= 1"),
+        (["--case", "deep_30mm", "--depths", "0.01", "--no-online"], "drop --depths, --online"),
     ],
 )
 def test_compress_command_names_bad_arguments(
