@@ -547,14 +547,18 @@ def print_tables(records: list[dict[str, Any]]) -> None:
                 f"median {run['solver_iterations_median']:.0f} (at cap "
                 f"{run['solver_iterations_at_cap']}), warnings {run['warnings']}"
             )
-    print("\ntargets (issue 3): MuJoCo / ours >= 3 in paper mode, >= 2 in robust mode")
+    print(
+        "\ntargets (issue 3): MuJoCo / ours >= 3 in paper mode, >= 2 in robust mode, "
+        f"for each of our methods (the headline is {OURS_METHODS[0]})"
+    )
+    needed = {"paper": 3.0, "robust": 2.0}
     for r in records:
-        for mode, needed in (("paper", 3.0), ("robust", 2.0)):
-            value, steady = r["ratio"][mode], r["ratio_steady"][mode]
-            verdict = "meets" if value >= needed else "MISSES"
+        for run in r["ours"]:
+            value, steady, mode = run["ratio"], run["ratio_steady"], run["mode"]
+            verdict = "meets" if value >= needed[mode] else "MISSES"
             print(
-                f"  {r['tets']:>6} tets {mode:>6}: {value:6.2f} x (steady {steady:.2f} x) "
-                f">= {needed:.0f} x? {verdict}"
+                f"  {r['tets']:>6} tets {run['method']:>10} {mode:>6}: {value:6.2f} x "
+                f"(steady {steady:.2f} x) >= {needed[mode]:.0f} x? {verdict}"
             )
 
 
