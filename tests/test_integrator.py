@@ -288,3 +288,74 @@ def test_paper_step_reuses_its_end_evaluation_only_where_it_starts() -> None:
     fresh.integrator._end_state = None
     np.testing.assert_array_equal(kept.step().positions, fresh.step().positions)
     assert evaluations == 7
+
+
+class _Quadratic:
+    """E(y) = 1/2 y^T A y - b^T y with a record of the points evaluated (the line search's
+    ``evaluate``: energy [J], gradient [N], force scale [N])."""
+
+    def __init__(self, energy_offset: float = 0.0) -> None:
+        rng = np.random.default_rng(3)
+        q = rng.standard_normal((6, 6))
+        self.a = q @ q.T + 6.0 * np.eye(6)
+        self.b = rng.standard_normal(6)
+        self.offset = energy_offset
+        self.evaluated: list[np.ndarray] = []
+
+    def __call__(self, y: np.ndarray) -> tuple[float, np.ndarray, float]:
+        self.evaluated.append(y.copy())
+        gradient = self.a @ y - self.b
+        return 0.5 * y @ self.a @ y - self.b @ y + self.offset, gradient, 1.0
+
+
+@pytest.mark.parametrize("fraction", [0.25, 0.3, 0.4, 0.6])
+def test_line_search_extrapolates_a_full_step_that_falls_short(fraction: float) -> None:
+    """A step a fraction of Newton's (as when Newton converges only linearly) is lengthened
+    to the secant's zero of the directional derivative: exact on a quadratic, capped at 4.
+    Past half of Newton's step (the energy falling at under half its initial rate at its end)
+    the step is kept as it is."""
+    from tissue.integrator import ImplicitIntegrator
+
+    energy = _Quadratic()
+    y = np.zeros(6)
+    e0, g0, _ = energy(y)
+    newton = -np.linalg.solve(energy.a, g0)
+    found = ImplicitIntegrator._line_search(None, y, fraction * newton, g0, 0.0, energy, e0)
+    assert found is not None
+    point, point_energy, point_gradient, _ = found
+    expected = (min(4.0, 1.0 / fraction) if fraction < 0.5 else 1.0) * fraction * newton
+    np.testing.assert_allclose(point, expected, rtol=1e-12, atol=1e-15)
+    if fraction < 0.5:
+        assert point_energy < energy(y + fraction * newton)[0]
+    np.testing.assert_allclose(point_gradient, energy.a @ point - energy.b, atol=1e-12)
+
+
+def test_line_search_keeps_a_good_full_step_and_evaluates_last_where_it_ends() -> None:
+    """Newton's own step is kept without a further evaluation; a step whose extrapolation
+    does not lower the energy is kept too, evaluated again (contact terms report the last
+    evaluation's forces)."""
+    from tissue.integrator import ImplicitIntegrator
+
+    energy = _Quadratic()
+    y = np.zeros(6)
+    e0, g0, _ = energy(y)
+    newton = -np.linalg.solve(energy.a, g0)
+    evaluations = len(energy.evaluated)
+    point, *_ = ImplicitIntegrator._line_search(None, y, newton, g0, 0.0, energy, e0)
+    np.testing.assert_allclose(point, newton, rtol=1e-12)
+    assert len(energy.evaluated) == evaluations + 1
+
+    class _RisesBeyondOne(_Quadratic):
+        def __call__(self, y: np.ndarray) -> tuple[float, np.ndarray, float]:
+            e, g, s = super().__call__(y)
+            beyond = np.linalg.norm(y) > 1.5 * np.linalg.norm(0.3 * newton)
+            return (e + 1.0 if beyond else e), g, s
+
+    rising = _RisesBeyondOne()
+    point, point_energy, *_ = ImplicitIntegrator._line_search(
+        None, y, 0.3 * newton, g0, 0.0, rising, e0
+    )
+    np.testing.assert_allclose(point, 0.3 * newton, rtol=1e-12)
+    assert len(rising.evaluated) == 3  # the step, its extrapolation, the step again
+    np.testing.assert_array_equal(rising.evaluated[-1], point)
+    assert point_energy == rising(point)[0]

@@ -70,6 +70,19 @@ _ARMIJO_C = 1e-4
 # size only (1e-14 of that unit on the published mesh), which must read as converged.
 RESIDUAL_SCALE_FLOOR = 1e-10
 _MIN_STEP_FRACTION = 2.0**-12
+# Extrapolation: a full Newton step along which the energy still falls at more than this
+# fraction of its initial rate (the directional derivative at the step's end over the one
+# at its start) was too short, as where Newton only converges linearly (the penalty
+# springs' tangent freezes the contact normal; see tissue/contact/penalty.py). The secant
+# step, where the directional derivative interpolates to zero, is tried then, up to
+# _MAX_EXTRAPOLATION full steps, and kept if its energy is lower. Measured (robust penalty,
+# study cells, one run each on a loaded machine): the 176,506-tet cell, lesion 8, steps
+# 639-645 at 29-30 mm, 206 -> 77 s with no step split (the four slowest had failed their 30
+# iterations, contracting 0.8-0.9 an iteration, and were split); 4,126 tets, lesion 3, the
+# most Newton iterations in a step 19 -> 9 and 7,369 tets, lesion 2, 13 -> 9, the forces the
+# same to 5 digits; cells where it never acts are bit-identical.
+_EXTRAPOLATE_BELOW = 0.5
+_MAX_EXTRAPOLATION = 4.0
 # Relative Newton residual below which the exact (unprojected) tangent is tried first in
 # quasi-static steps and in dynamic ones without stiffness damping.
 PROJECTION_SWITCH = 1e-1
@@ -763,11 +776,13 @@ class ImplicitIntegrator:
         return self._rest_stiffness_matrix
 
     def _line_search(self, y, step, gradient, mismatch, evaluate, energy, dofs=None, targets=None):
-        """Backtracking Armijo search along ``step``.
+        """Backtracking Armijo search along ``step``, extrapolating a full step that fell short.
 
         Returns (y, energy, gradient, scale) at the accepted point, or None when no finite
         point was found. A full step puts the constrained dofs exactly on ``targets`` (y +
-        (t - y) may miss t by an ulp, which would read as a constraint not yet met).
+        (t - y) may miss t by an ulp, which would read as a constraint not yet met). A full
+        step accepted with the energy still falling steeply at its end tries a longer one
+        (see ``_EXTRAPOLATE_BELOW``); the last evaluation is always at the returned point.
         """
         slope = _dot(gradient, step)
         alpha = 1.0
@@ -783,6 +798,12 @@ class ImplicitIntegrator:
                 or slope >= 0.0
                 or trial_energy <= energy + _ARMIJO_C * alpha * slope + 1e-14 * abs(energy)
             ):
+                if alpha == 1.0 and mismatch == 0.0 and slope < 0.0:
+                    longer = _extrapolate(
+                        y, step, slope, trial, trial_energy, trial_gradient, evaluate
+                    )
+                    if longer is not None:
+                        return longer
                 return trial, trial_energy, trial_gradient, trial_scale
             alpha *= 0.5
         # No decrease along the direction: keep the smallest step if it is finite.
@@ -927,6 +948,32 @@ def _pattern_positions(matrix: sp.csr_matrix, rows, cols, keys) -> NDArray[np.in
     if np.any(keys[where] != wanted):
         raise ValueError("an energy term's stiffness couples dofs outside the mesh's pattern")
     return where
+
+
+def _extrapolate(y, step, slope, accepted, energy, gradient, evaluate):
+    """The secant step past an accepted full step, if the energy still falls steeply there.
+
+    ``slope`` [J] is the directional derivative along ``step`` at y; ``accepted`` = y +
+    step, ``energy`` [J] and ``gradient`` [N] its evaluation. Returns (y', energy,
+    gradient, scale) at y' = y + alpha step, alpha in [2, ``_MAX_EXTRAPOLATION``] (where
+    the directional derivative, interpolated linearly from its values at 0 and 1,
+    vanishes; the cap where it does not rise), when that energy is lower; else None,
+    with ``accepted`` evaluated again if y' was tried (the contact terms report the
+    last evaluation's forces).
+    """
+    end_slope = _dot(gradient, step)
+    if not end_slope < _EXTRAPOLATE_BELOW * slope:
+        return None
+    rise = end_slope - slope  # > 0 where the energy is convex along the step
+    alpha = _MAX_EXTRAPOLATION
+    if rise > 0.0:
+        alpha = min(alpha, -slope / rise)
+    trial = y + alpha * step
+    trial_energy, trial_gradient, trial_scale = evaluate(trial)
+    if math.isfinite(trial_energy) and trial_energy < energy:
+        return trial, trial_energy, trial_gradient, trial_scale
+    evaluate(accepted)
+    return None
 
 
 def _finite(energy: float, gradient: NDArray[np.float64]) -> bool:

@@ -35,10 +35,10 @@ Newton iterations in a step (lesion 8: 12 -> 10; lesion 3: 19 -> 9; 12,861 tets,
 2.4 / 4.3 s), and on lesion 8 at 4,126 tets the press settled elsewhere at 30 mm (6.34 ->
 5.75 N, the lesion 2 mm away): the turning force destabilises the tissue's slide round the
 rim, as the exact tangent's full steps did for LM's dynamic steps.
-A lead, measured but not landed (it changes the robust study's results where it acts): an
-extrapolating line search (a full step whose directional derivative is still below half the
-initial one tries the secant step, up to 4 x) took that cell's steps 639-645 from 206 to 77 s
-without a subdivision, and left cells where it does not act bit-identical.
+What helps instead is the integrator's extrapolating line search (a full step whose
+directional derivative is still below half the initial one tries the secant step, up to 4 x;
+``tissue.integrator._extrapolate``): it took that cell's steps 639-645 from 206 to 77 s
+without a subdivision, and leaves steps where it does not act bit-identical.
 
 Limitations: the constraint is only approximately satisfied (penetration ~ force / k_s);
 a large k_s worsens the conditioning of the system (the paper's stability problem on fine
