@@ -317,37 +317,6 @@ def test_augmented_penalty_reaches_its_tolerance_with_soft_springs(block) -> Non
     assert abs(plain.force_world[2] - exact) > 5 * abs(result.force_world[2] - exact)
 
 
-def test_augmented_penalty_rounds_start_where_the_last_round_ended(block) -> None:
-    """Only the offsets change between augmentation rounds: each re-solve of a step starts
-    from the last round's end (the first from the inertial prediction), and so needs no more
-    Newton iterations than the round before it."""
-    shape = SphereProbe(0.01)
-    soft = PenaltyParams(stiffness_n_per_m=20.0, penetration_tolerance_m=2e-5)
-    model = _model("penalty", block, shape, quasi=False, params=soft)
-    integrator = model.sim.integrator
-    calls: list[tuple[object, object, int]] = []
-    original = integrator.step
-
-    def recording(*args, **kwargs):
-        outcome = original(*args, **kwargs)
-        calls.append((kwargs.get("initial_guess"), outcome.positions, outcome.newton_iterations))
-        return outcome
-
-    integrator.step = recording
-    probe = Probe.looking_along(shape, np.array([0.0, 0.0, SIZE / 2]), np.array([0.0, 0.0, -1.0]))
-    rounds_seen = 0
-    for i in range(1, 11):
-        calls.clear()
-        result = model.step(probe.position_world + [0.0, 0.0, -0.0002 * i], probe.quat_wxyz)
-        assert result.status is StepStatus.OK
-        assert calls[0][0] is None
-        for before, after in zip(calls, calls[1:], strict=False):
-            assert after[0] is before[1]  # the guess is the last round's end
-            assert after[2] <= before[2]  # no more Newton iterations
-        rounds_seen = max(rounds_seen, len(calls))
-    assert rounds_seen >= 2  # the soft springs did need augmenting
-
-
 def test_prescribed_reaction_balances_the_fixed_base(block) -> None:
     shape = BoxProbe((0.01, 0.01, 0.01))
     model = _model("prescribed", block, shape, params=PrescribedParams(online=True))

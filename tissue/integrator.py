@@ -477,7 +477,6 @@ class ImplicitIntegrator:
         constrained_dofs: NDArray[np.int64],
         targets: NDArray[np.float64],
         terms: Sequence[EnergyTerm] = (),
-        initial_guess: NDArray[np.float64] | None = None,
     ) -> StepOutcome:
         """Advance one step of ``dt`` [s].
 
@@ -489,10 +488,6 @@ class ImplicitIntegrator:
                 nodes included), (k,), unique.
             targets: their coordinates at the end of the step [m], (k,).
             terms: extra energy terms (penalty contact) active during the step.
-            initial_guess: robust mode: where Newton starts [m], (node_count, 3), instead of
-                the extrapolation from the last step (a re-solve of the same step, such as an
-                augmented-Lagrangian round, starts from the last round's end); a halved step
-                ignores it.
         """
         start = time.perf_counter()
         if self.config.mode is IntegrationMode.PAPER:
@@ -506,7 +501,6 @@ class ImplicitIntegrator:
                 targets,
                 terms,
                 self.config.max_subdivisions,
-                initial_guess,
             )
             self._last_step = (
                 (outcome.positions, outcome.velocities, velocities, dt)
@@ -649,10 +643,8 @@ class ImplicitIntegrator:
 
     # ------------------------------------------------------------------ robust
 
-    def _robust_step(
-        self, x, v, h, dofs, targets, terms, subdivisions_left, guess=None
-    ) -> StepOutcome:
-        outcome = self._newton(x, v, h, dofs, targets, terms, guess)
+    def _robust_step(self, x, v, h, dofs, targets, terms, subdivisions_left) -> StepOutcome:
+        outcome = self._newton(x, v, h, dofs, targets, terms)
         if not outcome.status.is_failure or subdivisions_left == 0:
             return outcome
         # Retry as two half steps, the prescribed targets interpolated linearly.
@@ -672,7 +664,7 @@ class ImplicitIntegrator:
         """The step's incremental potential (robust mode), for Newton and constrained solvers."""
         return IncrementalPotential(self, x0, v0, h, dofs, targets, terms)
 
-    def _newton(self, x0, v0, h, dofs, targets, terms, guess=None) -> StepOutcome:
+    def _newton(self, x0, v0, h, dofs, targets, terms) -> StepOutcome:
         cfg = self.config
         quasi = cfg.quasi_static
         potential = self.incremental_potential(x0, v0, h, dofs, targets, terms)
@@ -682,13 +674,9 @@ class ImplicitIntegrator:
         # Start from the inertial prediction x + h v: for a probe moving steadily the free
         # nodes keep moving much as they did, which saves Newton iterations. Continuing the
         # last step, add its velocity change too (x + h v + h^2 a, a = dv / h_last): about
-        # fifty times closer to the solution in a steady compression. A guess given by the
-        # caller (the same step solved again) comes first.
+        # fifty times closer to the solution in a steady compression.
         y = potential.start()
-        if guess is not None:
-            guess = np.array(guess, dtype=np.float64).reshape(-1)
-        else:
-            guess = self._extrapolated_start(x0, v0, h)
+        guess = self._extrapolated_start(x0, v0, h)
         evaluated = evaluate(guess) if guess is not None else None
         if guess is not None and evaluated is not None and _finite(evaluated[0], evaluated[1]):
             y = guess

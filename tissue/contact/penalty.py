@@ -19,12 +19,14 @@ over to the next step, so a steady press needs about one solve per step. The pen
 then falls to the tolerance without raising k_s, which keeps the system as well conditioned
 as the default k_s makes it (the paper's stability problem with stiff penalties).
 
-Each augmentation round after the first starts Newton from the last round's end (only the
-offsets changed), not again from the step's start. Measured on study cells (robust penalty,
-one run each): 4,126 tets, lesion 8, factorisations 88 -> 49, and the press at 30 mm settles
-at 5.75 N instead of 6.34 N, the equilibrium LM reaches there (5.79 N); 2,539 tets, lesion 2,
-8.28 N instead of 7.64 N at 30 mm, LM's 8.26 N. Deep presses round the rim have more than
-one equilibrium, and 18 of the 20 cells at those two levels kept theirs (within 0.14 N).
+Each augmentation round restarts Newton from the step's start. Tried and left: starting
+it where the last round ended (only the offsets changed). On study cells it cut the
+factorisations (4,126 tets, lesion 8: 88 -> 49) and moved two deep presses onto the
+equilibrium LM reaches at 30 mm (4,126 tets, lesion 8: 6.34 -> 5.75 N, LM 5.79 N; 2,539,
+lesion 2: 7.64 -> 8.28 N, LM 8.26 N; the other 18 cells at those levels within 0.14 N), but
+on the published scene's level-4 poses (the slow hard case) a landmark then jumped 1.39 mm
+in one step (step 165; the probe moved 0.2 mm): a round started from the last round's end
+can leave the basin the step's own dynamics would keep it in.
 
 Robust steps converge only linearly where the probe's rounded rim presses hard, most likely
 because the springs' tangent freezes the normal, leaving out the exact tangent's -m d2g/dx2
@@ -250,21 +252,11 @@ class PenaltyContact(FEContactModel):
         started = time.perf_counter()
         dt = sim.config.tissue_dt
         dofs, targets = sim.constraints()
-        # Copies: the first round starts from the inertial prediction x + h v, not the
-        # integrator's extrapolation of the last step (x + h v + h^2 a). Measured at 176,506
-        # tets (apex press, 35 steps): the springs' imbalance from the probe's advance
-        # dominates the first residual either way (0.2-0.3), and the extrapolation took 2.7
-        # Newton iterations a step instead of 2.2.
         x0, v0 = sim.positions.copy(), sim.velocities.copy()
-        guess = None
         for round_index in range(self.params.max_augmentations + 1):
-            outcome = sim.integrator.step(
-                x0, v0, dt, dofs, targets, (self.term,), initial_guess=guess
-            )
+            outcome = sim.integrator.step(x0, v0, dt, dofs, targets, (self.term,))
             if outcome.status in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
                 break
-            # The next round changes only the offsets: it starts where this one ended.
-            guess = outcome.positions
             penetration = self.term.penetration_m(outcome.positions)
             if (
                 penetration <= self.params.penetration_tolerance_m
