@@ -76,11 +76,12 @@ _MIN_STEP_FRACTION = 2.0**-12
 # springs' tangent freezes the contact normal; see tissue/contact/penalty.py). The secant
 # step, where the directional derivative interpolates to zero, is tried then, up to
 # _MAX_EXTRAPOLATION full steps, and kept if its energy is lower. Measured (robust penalty,
-# study cells, one run each on a loaded machine): the 176,506-tet cell, lesion 8, steps
-# 639-645 at 29-30 mm, 206 -> 77 s with no step split (the four slowest had failed their 30
-# iterations, contracting 0.8-0.9 an iteration, and were split); 4,126 tets, lesion 3, the
-# most Newton iterations in a step 19 -> 9 and 7,369 tets, lesion 2, 13 -> 9, the forces the
-# same to 5 digits; cells where it never acts are bit-identical.
+# study cells, one run each): 4,126 tets, lesion 3, Newton iterations 578 -> 555 and the
+# most in a step 19 -> 8; 2,539 tets, lesion 1, 851 -> 834, 23 -> 17 and one split step ->
+# none; final forces within 2e-5 N. The 176,506-tet cell, lesion 8 (partly loaded
+# machine): 886 -> 730 s of steps, 100 %, steps 639-645 at 29-30 mm 206 -> 145 s, one step
+# split (643, 99 s, five augmentation rounds) where four were. Cells where it never acts
+# are bit-identical.
 _EXTRAPOLATE_BELOW = 0.5
 _MAX_EXTRAPOLATION = 4.0
 # Relative Newton residual below which the exact (unprojected) tangent is tried first in

@@ -46,8 +46,9 @@ Newton iterations in a step (lesion 8: 12 -> 10; lesion 3: 19 -> 9; 12,861 tets,
 rim, as the exact tangent's full steps did for LM's dynamic steps.
 What helps instead is the integrator's extrapolating line search (a full step whose
 directional derivative is still below half the initial one tries the secant step, up to 4 x;
-``tissue.integrator._extrapolate``): it took that cell's steps 639-645 from 206 to 77 s
-without a subdivision, and leaves steps where it does not act bit-identical.
+``tissue.integrator._extrapolate``): that cell's steps 639-645 took 145 s instead of 206 s,
+one of them split (643: 99 s, five augmentation rounds, each solve restarting from the
+step's start) where four were; steps where it does not act are bit-identical.
 
 Limitations: the constraint is only approximately satisfied (penetration ~ force / k_s);
 a large k_s worsens the conditioning of the system (the paper's stability problem on fine
