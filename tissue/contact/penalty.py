@@ -31,13 +31,13 @@ can leave the basin the step's own dynamics would keep it in.
 Robust steps converge only linearly where the probe's rounded rim presses hard, most likely
 because the springs' tangent freezes the normal, leaving out the exact tangent's -m d2g/dx2
 (m the point's force, g the signed distance; LM's quasi-static steps carry that term).
-Measured on the study's 176,506-tet cell, lesion 8, at 29-30 mm (4.5-4.8 N), every
-iteration with the exact elastic tangent and nearly all with full steps: residuals contracted
-by ~0.66 per iteration in the steps that converged (12-17 iterations, 7-8 s); in the four
-slowest (20-79 s) the whole step failed its 30 iterations (contracting by 0.8-0.9, in the
-worst rising for a while) and its halves then converged in 10-19; the worst took 144
-iterations over two augmentation rounds and 9 refactorisations. The 24 steps over 5 s were
-37 % of the cell's 886 s (loaded machine).
+Measured before the extrapolating line search (below), on the study's 176,506-tet cell,
+lesion 8, at 29-30 mm (4.5-4.8 N), every iteration with the exact elastic tangent and nearly
+all with full steps: residuals contracted by ~0.66 per iteration in the steps that converged
+(12-17 iterations, 7-8 s); in the four slowest (20-79 s) the whole step failed its 30
+iterations (contracting by 0.8-0.9, in the worst rising for a while) and its halves then
+converged in 10-19; the worst took 144 iterations over two augmentation rounds and 9
+refactorisations. The 24 steps over 5 s were 37 % of the cell's 886 s (loaded machine).
 Tried and left: adding the term in robust mode. On the 4,126-tet cells it cut the most
 Newton iterations in a step (lesion 8: 12 -> 10; lesion 3: 19 -> 9; 12,861 tets, lesion 8:
 9 -> 7) but made steps fail and subdivide (2, 4 and 1 times, the slowest step 0.2-0.3 -> 1.5 /
@@ -46,9 +46,10 @@ Newton iterations in a step (lesion 8: 12 -> 10; lesion 3: 19 -> 9; 12,861 tets,
 rim, as the exact tangent's full steps did for LM's dynamic steps.
 What helps instead is the integrator's extrapolating line search (a full step whose
 directional derivative is still below half the initial one tries the secant step, up to 4 x;
-``tissue.integrator._extrapolate``): that cell's steps 639-645 took 145 s instead of 206 s,
-one of them split (643: 99 s, five augmentation rounds, each solve restarting from the
-step's start) where four were; steps where it does not act are bit-identical.
+``tissue.integrator._extrapolate``): that cell's steps 639-645 took 145 s instead of 206 s
+(all its steps 730 s instead of 886 s, 22 over 5 s), one of them split (643: 99 s, five
+augmentation rounds, each solve restarting from the step's start) where four were; steps
+where it does not act are bit-identical.
 
 Limitations: the constraint is only approximately satisfied (penetration ~ force / k_s);
 a large k_s worsens the conditioning of the system (the paper's stability problem on fine
