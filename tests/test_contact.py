@@ -86,6 +86,39 @@ def test_lagrange_kept_factorization_matches_refactorizing(
     assert np.abs(x_kept - x_exact).max() < 1e-3 * 0.002
 
 
+@pytest.mark.parametrize("quasi", [True, False])
+def test_robust_lagrange_reports_the_end_state_it_last_evaluated(block, quasi: bool) -> None:
+    """A robust LM step takes its end's elastic energy and smallest det F from Newton's last
+    evaluation, which was at the end positions: no extra element pass, and the same values,
+    bit for bit, as evaluating afresh."""
+    shape = SphereProbe(0.01)
+    model = _model("lm", block, shape, mode="robust", quasi=quasi)
+    integrator = model.sim.integrator
+    afresh = integrator.elasticity.energy_and_min_volume_ratio
+    calls = 0
+
+    def counted(positions):
+        nonlocal calls
+        calls += 1
+        return afresh(positions)
+
+    integrator.elasticity.energy_and_min_volume_ratio = counted  # type: ignore[method-assign]
+    outcomes = []
+    finish = integrator._finish
+
+    def recorded(*args, **kwargs):
+        outcomes.append(finish(*args, **kwargs))
+        return outcomes[-1]
+
+    integrator._finish = recorded  # type: ignore[method-assign]
+    result = _press(model, shape, 0.002, 6, SIZE / 2)
+    assert result.status is StepStatus.OK
+    assert len(outcomes) >= 6
+    for outcome in outcomes:
+        assert (outcome.elastic_energy_j, outcome.min_volume_ratio) == afresh(outcome.positions)
+    assert calls == 0
+
+
 def test_robust_lagrange_converges_quadratically_under_a_curved_probe(
     block, monkeypatch: pytest.MonkeyPatch
 ) -> None:

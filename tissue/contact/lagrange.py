@@ -995,6 +995,10 @@ class LagrangeContact(FEContactModel):
         new_v = np.zeros_like(v) if cfg.quasi_static else (new_x - x) / h
         reaction = np.zeros(y.size)
         reaction[dofs] = (gradient - rows.T @ forces)[dofs]
+        # The last evaluation was at y (unless an exact step was undone): its elastic energy
+        # and smallest det F serve the step's end, which saves an element pass a step.
+        elastic = potential.last_elastic
+        known = elastic[1:] if elastic is not None and elastic[0] is y else None
         outcome = integrator._finish(
             x,
             v,
@@ -1004,6 +1008,7 @@ class LagrangeContact(FEContactModel):
             _report(False),
             newton_iterations=iterations,
             newton_residual=residual,
+            known=known,
         )
         if status is StepStatus.NOT_CONVERGED and outcome.status is StepStatus.OK:
             outcome.status = StepStatus.NOT_CONVERGED
