@@ -145,8 +145,7 @@ def test_columns_for_newly_constrained_dofs_share_the_first_solve() -> None:
     """The columns F^-1 e_d of dofs constrained since the kept factor are solved in the same
     multi-RHS call as CG's first preconditioner solve: one call of the factor per CG
     iteration, the first with one column per new dof plus the residual (Pardiso reads the
-    factor once per call: on the finest mesh each further column costs about a third of a
-    solve)."""
+    factor once per call: on the finest mesh one right-hand side took 45 ms, six 139 ms)."""
     rng = np.random.default_rng(3)
     matrix = _laplacian_3d(7, 0.05)
     n = matrix.shape[0]
