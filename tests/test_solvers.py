@@ -10,7 +10,13 @@ from tissue.block import block_mesh
 from tissue.elasticity import Elasticity
 from tissue.errors import ConfigError
 from tissue.material import TissueMaterials
-from tissue.solvers import ConstrainedSystem, LinearSolver, LinearSolverConfig, _NodeBlocks
+from tissue.solvers import (
+    ConstrainedSystem,
+    LinearSolver,
+    LinearSolverConfig,
+    RankOneTerms,
+    _NodeBlocks,
+)
 
 
 def _laplacian_3d(n: int, shift: float) -> sp.csr_matrix:
@@ -179,6 +185,111 @@ def test_columns_for_newly_constrained_dofs_share_the_first_solve() -> None:
         ConstrainedSystem(matrix.copy(), rng.standard_normal(n), later, values), tolerance=1e-10
     )
     assert shapes == [(n,)] * report.iterations
+
+
+def _rank_one_scene(seed: int):
+    """A matrix, its rank-one terms when a factor was kept (keys 3, 8, 11, 20) and now: 8 as
+    it was, 11 turned, 20 re-scaled, 31 and 40 new (40 on a constrained dof), 3 gone."""
+    rng = np.random.default_rng(seed)
+    base = _laplacian_3d(6, 0.05)
+    n = base.shape[0]
+    dofs = np.array([rng.choice(n, 6, replace=False) for _ in range(6)])
+    vectors = rng.standard_normal((6, 6))
+    old = RankOneTerms(np.array([3, 8, 11, 20]), dofs[:4], vectors[:4], np.full(4, 50.0))
+    now = RankOneTerms(
+        np.array([8, 11, 20, 31, 40]),
+        dofs[1:],
+        np.vstack([vectors[1], rng.standard_normal(6), vectors[3], vectors[4:]]),
+        np.array([50.0, 50.0, 80.0, 50.0, 50.0]),
+    )
+    constrained = rng.random(n) < 0.05
+    constrained[now.dofs[4, 0]] = True
+    return rng, base, old, now, constrained, rng.standard_normal(n)
+
+
+def _with_terms(base: sp.csr_matrix, terms: RankOneTerms) -> sp.csr_matrix:
+    n = base.shape[0]
+    rows = np.repeat(terms.dofs, terms.dofs.shape[1], axis=1)
+    cols = np.tile(terms.dofs, (1, terms.dofs.shape[1]))
+    values = terms.scales[:, None, None] * np.einsum("ka,kb->kab", terms.vectors, terms.vectors)
+    added = sp.csr_matrix((values.reshape(-1), (rows.reshape(-1), cols.reshape(-1))), (n, n))
+    matrix = (base + added).tocsr()
+    matrix.sort_indices()
+    return matrix
+
+
+@pytest.mark.parametrize("declared", [True, False])
+def test_kept_factor_is_corrected_for_rank_one_terms_changed_since(declared: bool) -> None:
+    """Terms added, removed, re-scaled and turned since the kept factorisation (penalty
+    springs entering and leaving contact): the capacitance correction makes the
+    preconditioner the current matrix's inverse, so CG converges in one iteration; undeclared,
+    the same changes cost CG an iteration each. The 7 new columns (two new terms, the old
+    and new forms of two changed ones, one gone) share the first solve and are kept."""
+    rng, base, old, now, constrained, values = _rank_one_scene(11)
+    n = base.shape[0]
+    # No amortised refresh: on a system this small the 7 columns alone (2.8 iterations'
+    # worth) would pay for a new factorisation.
+    solver = LinearSolver(LinearSolverConfig(kind="reuse", reuse_refresh_factor=0.0))
+    solver.single_precision_preconditioner = False
+    first = ConstrainedSystem(
+        _with_terms(base, old),
+        rng.standard_normal(n),
+        constrained,
+        values,
+        old if declared else None,
+    )
+    assert solver.solve(first)[1].factorized
+    kept = solver.kept_factorization
+    assert kept is not None
+    shapes: list[tuple[int, ...]] = []
+    solve = kept.solve
+
+    def counted(rhs):
+        shapes.append(np.shape(rhs))
+        return solve(rhs)
+
+    kept.solve = counted  # type: ignore[method-assign]
+    matrix = _with_terms(base, now)
+    rhs = rng.standard_normal(n)
+    system = ConstrainedSystem(matrix.copy(), rhs, constrained, values, now if declared else None)
+    x, report = solver.solve(system, tolerance=1e-10)
+    np.testing.assert_allclose(
+        x, _reference(matrix, rhs, constrained, values), rtol=1e-8, atol=1e-8
+    )
+    assert report.converged and not report.factorized
+    if not declared:
+        assert report.iterations >= 4
+        return
+    assert report.iterations == 1
+    assert shapes == [(n, 8)]
+    shapes.clear()
+    again = ConstrainedSystem(matrix.copy(), rng.standard_normal(n), constrained, values, now)
+    _, report = solver.solve(again, tolerance=1e-10)
+    assert report.iterations == 1 and shapes == [(n,)]
+
+
+def test_too_many_rank_one_changes_refactorise(monkeypatch) -> None:
+    """More changed terms than the cap on held columns: the kept factor is refreshed (and
+    the solve is exact)."""
+    import tissue.solvers as solvers
+
+    monkeypatch.setattr(solvers, "MAX_RANK_ONE_SINCE", 6)
+    rng, base, old, now, constrained, values = _rank_one_scene(12)
+    n = base.shape[0]
+    solver = LinearSolver(LinearSolverConfig(kind="reuse"))
+    first = ConstrainedSystem(
+        _with_terms(base, old), rng.standard_normal(n), constrained, values, old
+    )
+    solver.solve(first)
+    matrix = _with_terms(base, now)
+    rhs = rng.standard_normal(n)
+    x, report = solver.solve(
+        ConstrainedSystem(matrix.copy(), rhs, constrained, values, now), tolerance=1e-10
+    )
+    assert report.factorized
+    np.testing.assert_allclose(
+        x, _reference(matrix, rhs, constrained, values), rtol=1e-8, atol=1e-8
+    )
 
 
 def test_kept_factorization_correction_outgrows_its_column_cap(monkeypatch) -> None:

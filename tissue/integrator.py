@@ -54,6 +54,7 @@ from tissue.solvers import (
     LinearSolver,
     LinearSolverConfig,
     LinearSolverKind,
+    RankOneTerms,
     SolveReport,
     _dot,
     _free_square_norm,
@@ -170,6 +171,8 @@ class TermEvaluation:
         stiffness_rows, stiffness_cols, stiffness_values: d2(energy)/dx2 as COO triplets over
             dofs (3·node + axis); entries must couple nodes of a common tet so they fall inside
             the elastic sparsity pattern. Empty arrays for none.
+        rank_one: the same stiffness as rank-one terms (one per contact point), or None;
+            lets ``reuse`` correct a kept factorisation as terms come and go.
     """
 
     energy_j: float
@@ -177,6 +180,7 @@ class TermEvaluation:
     stiffness_rows: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     stiffness_cols: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     stiffness_values: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    rank_one: RankOneTerms | None = None
 
 
 class EnergyTerm(Protocol):
@@ -339,7 +343,9 @@ class IncrementalPotential:
             )
         values = np.zeros_like(y_flat)
         values[self.dofs] = self.targets - y_flat[self.dofs]
-        return ConstrainedSystem(matrix, rhs, self.constrained, values)
+        return ConstrainedSystem(
+            matrix, rhs, self.constrained, values, _rank_one_terms(self.terms, y3)
+        )
 
     def newton_direction(self, y_flat, gradient, project, tolerance, enough=0.0):
         """Newton direction [m] (3N,) and the solve report.
@@ -353,6 +359,15 @@ class IncrementalPotential:
             if rhs_norm > 0.0:
                 tolerance = max(tolerance, min(enough / rhs_norm, 0.5))
         return self.integrator.solver.solve(system, tolerance=tolerance)
+
+
+def _rank_one_terms(terms, positions: NDArray[np.float64]) -> RankOneTerms | None:
+    """The terms' stiffness as rank-one terms at ``positions`` (evaluations are cached), or
+    None unless exactly one term gives them (keys must be unique; one contact term is all a
+    step has)."""
+    given = [term.evaluate(positions).rank_one for term in terms]
+    found = [rank_one for rank_one in given if rank_one is not None]
+    return found[0] if len(found) == 1 else None
 
 
 def extrapolated_positions(

@@ -73,6 +73,7 @@ from tissue.integrator import IntegrationMode, TermEvaluation
 from tissue.material import TissueMaterials
 from tissue.mesh import TetMesh
 from tissue.probe import Probe
+from tissue.solvers import RankOneTerms
 from tissue.status import StepStatus
 
 # The default k_s makes a contact point as stiff as this many times the tissue under it
@@ -204,6 +205,15 @@ class PenaltyTerm:
             stiffness_rows=(3 * row_nodes + row_axes).reshape(-1),
             stiffness_cols=(3 * col_nodes + col_axes).reshape(-1),
             stiffness_values=blocks.reshape(-1),
+            # The same stiffness as one term k_s v v^T per active point, v = (w_a n)_a over
+            # its tet's 12 dofs: a kept factorisation is corrected for points entering and
+            # leaving contact in low rank (tissue.solvers._RankOneSince).
+            rank_one=RankOneTerms(
+                keys=contacts.points[active],
+                dofs=(3 * t[:, :, None] + np.arange(3)).reshape(-1, 12),
+                vectors=(w[:, :, None] * n[:, None, :]).reshape(-1, 12),
+                scales=np.full(int(np.count_nonzero(active)), self.stiffness),
+            ),
         )
         self._cache_key = positions.copy()
         self._cache_pose = pose
