@@ -23,7 +23,10 @@ Solvers:
   triangular solves instead of a factorisation (Courtecuisse et al. 2014 use a one-step-old
   factorisation as preconditioner in the same spirit). The preconditioner is factorised
   in single precision (half the memory and time); CG itself runs in double precision on the
-  exact matrix, and a system it cannot solve gets the double-precision direct solve.
+  exact matrix, and a system it cannot solve gets the double-precision direct solve. The
+  kept factorisation is corrected in capacitance (Woodbury) form for what changes in low
+  rank between solves: dofs constrained since it was computed, and rank-one terms a system
+  declares (:class:`RankOneTerms`: penalty springs) changed since.
 """
 
 from __future__ import annotations

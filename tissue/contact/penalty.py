@@ -9,6 +9,10 @@ enters the implicit system, so the step stays implicit in the contact too.
 In ``paper`` mode the springs are linearised once per step at the start positions, as
 SOFA does; in ``robust`` mode they are an energy term of the step's incremental potential,
 re-evaluated at every Newton iterate (so contacts appearing during the step are caught).
+Their stiffness also goes to the linear solver as one rank-one term per active point, so
+that the robust solver's kept factorisation is corrected for springs that joined or left
+since it was computed instead of letting CG pay an iteration for each
+(:class:`~tissue.solvers.RankOneTerms`).
 
 Robust mode also augments the springs (augmented Lagrangian, Simo & Laursen 1992; Wriggers,
 *Computational Contact Mechanics*, 2006, section 6.3): each point carries a force offset
