@@ -351,3 +351,34 @@ def test_calibration_refit_reproduces_the_stored_scales() -> None:
         pbd.CALIBRATED_VOLUME_COMPLIANCE_SCALE, rel=0.1
     )
     assert abs(result.force_mismatch) <= pbd.CALIBRATION_FORCE_BOUND
+
+
+def test_substep_kernels_match_the_array_expressions_they_replace() -> None:
+    """The per-substep kernels (near points, prediction, velocity) give the numpy
+    expressions' results to the bit, so that replacing them changed no trajectory."""
+    rng = np.random.default_rng(3)
+    x = rng.normal(scale=0.02, size=(200, 3))
+    point_nodes = rng.integers(0, 200, size=(150, 4))
+    point_weights = rng.dirichlet(np.ones(4), size=150)
+    point_weights[:40] = [1.0, 0.0, 0.0, 0.0]  # boundary nodes: weight 1 on themselves
+    centre, reach = np.array([0.004, -0.003, 0.01]), 0.025
+    near = np.empty(150, dtype=np.int64)
+    positions = np.empty((150, 3))
+    count = pbd._points_near(x, point_nodes, point_weights, centre, reach, near, positions)
+    expected_positions = np.einsum("pk,pka->pa", point_weights, x[point_nodes])
+    expected = np.flatnonzero(np.sum((expected_positions - centre) ** 2, axis=1) <= reach**2)
+    assert 0 < count < 150
+    np.testing.assert_array_equal(near[:count], expected)
+    np.testing.assert_array_equal(positions[:count], expected_positions[expected])
+
+    v = rng.normal(size=(200, 3))
+    damping, h = 0.99, 1.0 / 3000.0
+    x_kernel, v_kernel, previous = x.copy(), v.copy(), np.empty_like(x)
+    pbd._predict(x_kernel, v_kernel, previous, damping, h)
+    v_numpy = v * damping
+    np.testing.assert_array_equal(v_kernel, v_numpy)
+    np.testing.assert_array_equal(previous, x)
+    np.testing.assert_array_equal(x_kernel, x + h * v_numpy)
+    moved = x_kernel + rng.normal(scale=1e-6, size=x.shape)
+    pbd._update_velocity(moved, previous, v_kernel, h)
+    np.testing.assert_array_equal(v_kernel, (moved - previous) / h)
