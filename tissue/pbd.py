@@ -155,8 +155,16 @@ Rayleigh stiffness damping as XPBD's constraint damping (Macklin et al. 2016, eq
 gamma = r_K / h) of 3 ms also stopped that jitter but
 inverted a tet on fine_105k at 98 %, and 10 or 30 ms softened the force at 30 mm by 27 and
 46 % (with one sweep per substep the damping slows the elastic correction too); 40 substeps,
-on the nodes alone, inverted a tet at 28 mm on lesion 1's path at level 4126. Cost: about 50
-ms per step at level 4126 (4 ms at 10 substeps).
+on the nodes alone, inverted a tet at 28 mm on lesion 1's path at level 4126. Cost (``probegym
+bench contact --methods pbd``, two alternating runs, idle machine): 21.3-21.6 ms per step at
+4,141 tets (3.2-3.3 ms at 10 substeps), 125-129 ms at 26,854, 936 ms at 173,229 (one run).
+The sweeps' own kernel is two thirds of it at 4,141 tets and four fifths at 26,854
+(cProfile); each substep's contact detection, prediction and velocity update run compiled
+(:func:`_points_near`, :func:`_predict`, :func:`_update_velocity`; the probe's SDF too),
+which took the robust step from 37.4-37.8 to those 21.3-21.6 ms at 4,141 tets, 159-162 to
+125-129 ms at 26,854 and 989 to 936 ms at 173,229, bit for bit the same trajectories. A
+scalar rewrite of the sweep kernel (no scratch arrays) gained 9 % a sweep (1.58 -> 1.44 ms
+at 26,854 tets, the same bits) and was left out.
 
 Damping: the robust configuration damps velocities at :data:`ROBUST_DAMPING_PER_S` = 30/s
 (the paper configuration keeps 2/s). At 2/s the tissue rang after the sudden release (1,363
