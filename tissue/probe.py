@@ -174,6 +174,19 @@ def _larger(a: float, b: float) -> float:
     return a if (a >= b or a != a) else b
 
 
+@nb.njit(cache=True, inline="always")
+def _offset_box_distance(u: float, v: float) -> tuple[float, float, float]:
+    """Signed distance [m] of a point (u, v) from the quadrant u, v <= 0 (the corner a box's
+    or an extrusion's exact SDF reduces to) and its unit gradient (g_u, g_v): radial from
+    the corner outside, else the nearer wall. Shared by both SDF kernels below."""
+    ou = _larger(u, 0.0)
+    ov = _larger(v, 0.0)
+    outer = math.hypot(ou, ov)
+    if outer > 0.0:
+        return outer, ou / outer, ov / outer
+    return _larger(u, v), 1.0 if u >= v else 0.0, 1.0 if u < v else 0.0
+
+
 @nb.njit(cache=True)
 def _extruded_offset_sdf(d2, g2, y_rel, half_height, radius):  # pragma: no cover - compiled
     """Exact SDF of a 2D x-z profile extruded along y, then offset outwards by ``radius``.
@@ -198,20 +211,9 @@ def _extruded_offset_sdf(d2, g2, y_rel, half_height, radius):  # pragma: no cove
     distance = np.empty(count)
     normal = np.empty((count, 3))
     for i in range(count):
-        wx = d2[i]
-        wy = abs(y_rel[i]) - half_height
-        ox = _larger(wx, 0.0)
-        oy = _larger(wy, 0.0)
-        outer = math.hypot(ox, oy)
-        # Gradient in (w_x, w_y): radial from the profile's rim outside, else the nearer wall.
-        if outer > 0.0:
-            distance[i] = outer - radius
-            gx = ox / outer
-            gy = oy / outer
-        else:
-            distance[i] = _larger(wx, wy) - radius
-            gx = 1.0 if wx >= wy else 0.0
-            gy = 1.0 if wx < wy else 0.0
+        # In (w_x, w_y): the profile's distance and the distance past the extrusion's ends.
+        corner, gx, gy = _offset_box_distance(d2[i], abs(y_rel[i]) - half_height)
+        distance[i] = corner - radius
         sy = 1.0 if y_rel[i] >= 0.0 else -1.0
         normal[i, 0] = gx * g2[i, 0]
         normal[i, 1] = gy * sy
@@ -229,19 +231,10 @@ def _rounded_rectangle_sdf(x, z, half_x, half_z, corner_radius):  # pragma: no c
     for i in range(count):
         sx = 1.0 if x[i] >= 0.0 else -1.0
         sz = 1.0 if z[i] >= 0.0 else -1.0
-        qx = abs(x[i]) - (half_x - corner_radius)
-        qz = abs(z[i]) - (half_z - corner_radius)
-        ox = _larger(qx, 0.0)
-        oz = _larger(qz, 0.0)
-        outer = math.hypot(ox, oz)
-        if outer > 0.0:
-            d2[i] = outer - corner_radius
-            gx = ox / outer
-            gz = oz / outer
-        else:
-            d2[i] = _larger(qx, qz) - corner_radius
-            gx = 1.0 if qx >= qz else 0.0
-            gz = 1.0 if qx < qz else 0.0
+        corner, gx, gz = _offset_box_distance(
+            abs(x[i]) - (half_x - corner_radius), abs(z[i]) - (half_z - corner_radius)
+        )
+        d2[i] = corner - corner_radius
         gradient[i, 0] = gx * sx
         gradient[i, 1] = gz * sz
     return d2, gradient
