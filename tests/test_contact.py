@@ -87,6 +87,31 @@ def test_lagrange_kept_factorization_matches_refactorizing(
 
 
 @pytest.mark.parametrize("quasi", [True, False])
+def test_kept_response_leaves_far_free_constraints_out_of_the_lcp(
+    block, monkeypatch: pytest.MonkeyPatch, quasi: bool
+) -> None:
+    """Constraints carrying no force and farther than _LAZY_GAP_M from the probe stay out of
+    the kept response's LCP (no W~ columns are solved for them) and the press ends where
+    the full LCP takes it."""
+    import tissue.contact.lagrange as lagrange
+
+    monkeypatch.setattr(lagrange, "_KEEP_FACTORIZATION_UNKNOWNS", 0)
+    shape = SphereProbe(0.01)
+    outcomes = []
+    for lazy_gap_m in (np.inf, lagrange._LAZY_GAP_M):  # every constraint; the default
+        monkeypatch.setattr(lagrange, "_LAZY_GAP_M", lazy_gap_m)
+        model = _model("lm", block, shape, mode="robust", quasi=quasi)
+        result = _press(model, shape, 0.002, 10, SIZE / 2)
+        assert result.status is StepStatus.OK, result.diagnostics
+        assert result.penetration_max_m < 1e-6
+        outcomes.append((result, model.sim.positions.copy(), model._compliance.solved_columns))
+    (full, x_full, full_columns), (lazy, x_lazy, lazy_columns) = outcomes
+    assert lazy_columns < full_columns
+    assert lazy.force_world[2] == pytest.approx(full.force_world[2], rel=1e-3)
+    assert np.abs(x_lazy - x_full).max() < 1e-3 * 0.002
+
+
+@pytest.mark.parametrize("quasi", [True, False])
 def test_robust_lagrange_reports_the_end_state_it_last_evaluated(block, quasi: bool) -> None:
     """A robust LM step takes its end's elastic energy and smallest det F from Newton's last
     evaluation, which was at the end positions: no extra element pass, and the same values,

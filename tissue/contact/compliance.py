@@ -114,7 +114,7 @@ class KeptCompliance:
     ) -> NDArray[np.float64] | None:
         """F^-1 H^T dlambda [m] (dofs,) for force changes ``change`` [N] at ``points`` (all
         seen under the current F), with the normals kept; None when the columns are not kept."""
-        if self.columns is None:
+        if self.columns is None or points.size == 0:
             return None
         out = np.zeros(self.columns.shape[1])
         _add_scaled_rows(self.columns, self.slot[points], change, out)
