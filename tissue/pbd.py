@@ -1198,4 +1198,4 @@ class PBDContact(ContactModel):
         close = distance < self.config.contact_margin_m
         normals = np.ascontiguousarray(normal_local[close] @ rotation.T)
         anchors = points[close] - distance[close, None] * normals
-        return near[:count][close].copy(), normals, np.ascontiguousarray(anchors)
+        return near[:count][close], normals, np.ascontiguousarray(anchors)
