@@ -32,6 +32,22 @@ def _laplacian_3d(n: int, shift: float) -> sp.csr_matrix:
     return matrix
 
 
+def _record_kept_solves(solver: LinearSolver) -> list[tuple[int, ...]]:
+    """Wrap the solver's kept factorisation so that each of its solves appends its
+    right-hand side's shape to the returned list."""
+    kept = solver.kept_factorization
+    assert kept is not None
+    shapes: list[tuple[int, ...]] = []
+    solve = kept.solve
+
+    def counted(rhs):
+        shapes.append(np.shape(rhs))
+        return solve(rhs)
+
+    kept.solve = counted  # type: ignore[method-assign]
+    return shapes
+
+
 def _reference(matrix: sp.csr_matrix, rhs, constrained, values):
     free = ~constrained
     dense = matrix.toarray()
@@ -162,16 +178,7 @@ def test_columns_for_newly_constrained_dofs_share_the_first_solve() -> None:
     solver = LinearSolver(LinearSolverConfig(kind="reuse"))
     solver.single_precision_preconditioner = False
     solver.solve(ConstrainedSystem(matrix.copy(), rng.standard_normal(n), before, values))
-    kept = solver.kept_factorization
-    assert kept is not None
-    shapes: list[tuple[int, ...]] = []
-    solve = kept.solve
-
-    def counted(rhs):
-        shapes.append(np.shape(rhs))
-        return solve(rhs)
-
-    kept.solve = counted  # type: ignore[method-assign]
+    shapes = _record_kept_solves(solver)
     rhs = rng.standard_normal(n)
     x, report = solver.solve(ConstrainedSystem(matrix.copy(), rhs, later, values), tolerance=1e-10)
     np.testing.assert_allclose(x, _reference(matrix, rhs, later, values), rtol=1e-8, atol=1e-8)
@@ -239,16 +246,7 @@ def test_kept_factor_is_corrected_for_rank_one_terms_changed_since(declared: boo
         old if declared else None,
     )
     assert solver.solve(first)[1].factorized
-    kept = solver.kept_factorization
-    assert kept is not None
-    shapes: list[tuple[int, ...]] = []
-    solve = kept.solve
-
-    def counted(rhs):
-        shapes.append(np.shape(rhs))
-        return solve(rhs)
-
-    kept.solve = counted  # type: ignore[method-assign]
+    shapes = _record_kept_solves(solver)
     matrix = _with_terms(base, now)
     rhs = rng.standard_normal(n)
     system = ConstrainedSystem(matrix.copy(), rhs, constrained, values, now if declared else None)
