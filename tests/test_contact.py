@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 
 from tissue.block import block_mesh
 from tissue.contact import ContactMethod, make_contact_model
+from tissue.contact import base as contact_base
 from tissue.contact.lagrange import LagrangeParams
 from tissue.contact.penalty import PenaltyParams
 from tissue.contact.placement import first_contact_pose
@@ -15,6 +17,7 @@ from tissue.errors import ConfigError, TissueInputError
 from tissue.material import NeoHookean, TissueMaterials
 from tissue.probe import BoxProbe, Probe, SphereProbe, linear_probe
 from tissue.simulator import SimulationConfig
+from tissue.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.status import StepStatus
 
 E, NU = 3000.0, 0.3
@@ -340,6 +343,28 @@ def test_robust_contact_moves_to_a_much_finer_volume_boundary() -> None:
         result = _press(robust, shape, 0.001, 5, SIZE / 2)
         assert result.status is StepStatus.OK
         assert result.force_world[2] > 0.0
+
+
+@pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs 2 numba threads to see one")
+def test_a_small_step_runs_its_kernels_on_one_thread(block, monkeypatch) -> None:
+    """Below SERIAL_STEP_UNKNOWNS a step's compiled kernels run on one thread (their parallel
+    regions cost more to start than they save there); above it, on all of them."""
+    model = _model("penalty", block, SphereProbe(0.005), mode="paper", quasi=False)
+    advance = model._advance
+    seen: list[int] = []
+
+    def recorded():
+        seen.append(numba.get_num_threads())
+        return advance()
+
+    monkeypatch.setattr(model, "_advance", recorded)
+    threads = numba.get_num_threads()
+    assert 3 * block.node_count < SERIAL_STEP_UNKNOWNS and threads > 1
+    model.step(np.array([0.0, 0.0, SIZE]), np.array([1.0, 0.0, 0.0, 0.0]))
+    monkeypatch.setattr(contact_base, "SERIAL_STEP_UNKNOWNS", 3 * block.node_count)
+    model.step(np.array([0.0, 0.0, SIZE]), np.array([1.0, 0.0, 0.0, 0.0]))
+    assert seen == [1, threads]
+    assert numba.get_num_threads() == threads  # restored after the step
 
 
 def test_penalty_penetration_shrinks_as_stiffness_grows(block) -> None:

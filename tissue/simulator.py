@@ -36,7 +36,7 @@ from tissue.integrator import (
 )
 from tissue.material import TissueMaterials
 from tissue.mesh import TetMesh, check_rigid_motion_removed
-from tissue.solvers import LinearSolverConfig
+from tissue.solvers import SERIAL_STEP_UNKNOWNS, LinearSolverConfig, one_thread_below
 from tissue.status import StepStatus
 
 #: Robust mode's inversion barrier: below this volume ratio a tet's energy rises without
@@ -368,7 +368,10 @@ class TissueSimulator:
         dt = self.config.tissue_dt if dt is None else float(dt)
         start = time.perf_counter()
         dofs, targets = self.constraints()
-        outcome = self.integrator.step(self._positions, self._velocities, dt, dofs, targets, terms)
+        with one_thread_below(3 * self.mesh.node_count, SERIAL_STEP_UNKNOWNS):
+            outcome = self.integrator.step(
+                self._positions, self._velocities, dt, dofs, targets, terms
+            )
         return self.commit(outcome, dt, start)
 
     def commit(self, outcome: StepOutcome, dt: float, started: float) -> StepResult:

@@ -1310,13 +1310,28 @@ def _subtract_columns(z, columns, slots, weights):  # pragma: no cover - compile
 # iterations paid 5-10 ms of synchronisation on the small phantom levels (measured here on
 # 4.1k tets: a paper step 2.3 ms on one thread, 8-12 ms on two) while saving little work.
 SERIAL_CG_UNKNOWNS = 40_000
+# Below this many unknowns (3 per node) a whole step runs its compiled kernels on one thread
+# (``ContactModel.step``, ``TissueSimulator.step``): its assembly, element and contact
+# kernels are a dozen parallel regions a step besides CG's, each paying the workers' start
+# and join for little work. Measured here (`probegym bench contact`, two alternating runs of
+# NUMBA_NUM_THREADS=2 and 1, two idle cores), median step two threads -> one: 571 tets (417
+# unknowns) paper prescribed 1.75 / 1.59 -> 0.92 / 0.90 ms, paper penalty 2.13 / 1.91 -> 1.29 /
+# 1.24, robust LM 3.41 / 3.26 -> 2.44 / 2.23; 1,303 and 2,549 tets 15-40 % less for every
+# method and mode; 4,141 tets (2,406) paper penalty 4.12 / 4.19 -> 3.78 / 3.66, robust penalty
+# 7.86 / 7.95 -> 6.98 / 6.98, the others within the noise; from 6,966 tets (4,131) mixed
+# (robust LM 12.6 / 13.3 -> 14.8 / 14.1), and at 12,971 and 26,854 one thread is 10-40 % slower.
+SERIAL_STEP_UNKNOWNS = 3_000
 
 
 @contextlib.contextmanager
-def _threads_for(unknowns: int) -> Iterator[None]:
-    """Run the enclosed compiled kernels on one thread when the system is small."""
+def one_thread_below(unknowns: int, threshold: int) -> Iterator[None]:
+    """Run the enclosed compiled kernels on one thread when ``unknowns`` < ``threshold``.
+
+    Parallel reductions sum in per-thread parts, so their last bits depend on the thread
+    count: below the threshold results no longer depend on the machine's core count.
+    """
     previous = numba.get_num_threads()
-    if unknowns >= SERIAL_CG_UNKNOWNS or previous == 1:
+    if unknowns >= threshold or previous == 1:
         yield
         return
     numba.set_num_threads(1)
@@ -1324,6 +1339,11 @@ def _threads_for(unknowns: int) -> Iterator[None]:
         yield
     finally:
         numba.set_num_threads(previous)
+
+
+def _threads_for(unknowns: int) -> contextlib.AbstractContextManager[None]:
+    """CG's kernels on one thread below :data:`SERIAL_CG_UNKNOWNS`."""
+    return one_thread_below(unknowns, SERIAL_CG_UNKNOWNS)
 
 
 def _factor_pcg(

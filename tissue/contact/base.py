@@ -23,6 +23,7 @@ from tissue.embedding import BarycentricEmbedding
 from tissue.errors import TissueInputError
 from tissue.mesh import TetMesh, boundary_faces
 from tissue.probe import Probe, ProbeShape
+from tissue.solvers import SERIAL_STEP_UNKNOWNS, one_thread_below
 from tissue.status import StepStatus
 
 
@@ -186,7 +187,8 @@ class ContactModel(abc.ABC):
             )
         start = time.perf_counter()
         self.probe.set_pose(position, quat_wxyz)
-        status, points, forces, diagnostics = self._advance()
+        with one_thread_below(3 * self.mesh.node_count, SERIAL_STEP_UNKNOWNS):
+            status, points, forces, diagnostics = self._advance()
         if status in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
             # The state was kept from before the step; forces of the failed solve mean nothing.
             points, forces = np.zeros((0, 3)), np.zeros((0, 3))
