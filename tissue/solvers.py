@@ -1316,10 +1316,11 @@ SERIAL_CG_UNKNOWNS = 40_000
 # and join for little work. Measured here (`probegym bench contact`, two alternating runs of
 # NUMBA_NUM_THREADS=2 and 1, two idle cores), median step two threads -> one: 571 tets (417
 # unknowns) paper prescribed 1.75 / 1.59 -> 0.92 / 0.90 ms, paper penalty 2.13 / 1.91 -> 1.29 /
-# 1.24, robust LM 3.41 / 3.26 -> 2.44 / 2.23; 1,303 and 2,549 tets 15-40 % less for every
-# method and mode; 4,141 tets (2,406) paper penalty 4.12 / 4.19 -> 3.78 / 3.66, robust penalty
-# 7.86 / 7.95 -> 6.98 / 6.98, the others within the noise; from 6,966 tets (4,131) mixed
-# (robust LM 12.6 / 13.3 -> 14.8 / 14.1), and at 12,971 and 26,854 one thread is 10-40 % slower.
+# 1.24, robust LM 3.41 / 3.26 -> 2.44 / 2.23 (28-48 % less for every FE method and mode);
+# 1,303 tets 16-40 % less, 2,549 tets 5-26 %; 4,141 tets (2,406) paper penalty 4.12 / 4.19 ->
+# 3.78 / 3.66, robust penalty 7.86 / 7.95 -> 6.98 / 6.98, the others within the noise; from
+# 6,966 tets mixed (robust LM 12.6 / 13.3 -> 14.8 / 14.1), and at 12,971 and 26,854 one thread
+# is 10-40 % slower.
 SERIAL_STEP_UNKNOWNS = 3_000
 
 
