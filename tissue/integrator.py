@@ -565,11 +565,11 @@ class ImplicitIntegrator:
             # contact springs (damping them would make the contact viscous).
             elastic_v = np.empty_like(v_flat)
             _spmv(elastic.indptr, elastic.indices, elastic.data, v_flat, elastic_v)
-            if matrix is elastic:
-                stiffness_v = elastic_v
-            else:
-                stiffness_v = np.empty_like(v_flat)
-                _spmv(matrix.indptr, matrix.indices, matrix.data, v_flat, stiffness_v)
+            # The terms' stiffness is a few entries per contact point: (K + K_terms) v as
+            # K v plus their product, not a second product with the whole matrix.
+            stiffness_v = elastic_v
+            if matrix is not elastic:
+                stiffness_v = elastic_v + self._term_stiffness_product(x, terms, v_flat)
             damping_force = cfg.rayleigh_mass * m * v_flat + cfg.rayleigh_stiffness * elastic_v
             rhs = h * (force - damping_force) - h * h * stiffness_v
             values[dofs] = (targets - x_flat[dofs]) / h - v_flat[dofs]
@@ -934,6 +934,20 @@ class ImplicitIntegrator:
                 )
                 np.add.at(data, where, evaluation.stiffness_values)
         return sp.csr_matrix((data, stiffness.indices, stiffness.indptr), shape=stiffness.shape)
+
+    @staticmethod
+    def _term_stiffness_product(positions, terms, vector) -> NDArray[np.float64]:
+        """The terms' stiffness at ``positions`` times ``vector`` (3N,), summed over terms."""
+        total = np.zeros(vector.size)
+        for term in terms:
+            evaluation = term.evaluate(positions)
+            if evaluation.stiffness_values.size:
+                total += np.bincount(
+                    evaluation.stiffness_rows,
+                    weights=evaluation.stiffness_values * vector[evaluation.stiffness_cols],
+                    minlength=vector.size,
+                )
+        return total
 
     @staticmethod
     def _term_forces(positions, terms) -> NDArray[np.float64]:
