@@ -30,6 +30,19 @@ STEP_ADVANCE_M = 0.0002
 PRELOAD_DEPTH_M = 0.004
 # Surface nodes this far below the apex, under the face, move with the probe (a contact patch).
 PATCH_DEPTH_M = 0.005
+# Issue 5's targets for a converged robust step [ms], by phantom level (4,126, 26,220 and
+# 176,506 tets), in this benchmark's Newton step and in ``probegym bench contact``.
+ROBUST_STEP_TARGET_MS = {4126: 20.0, 26220: 100.0, 176506: 500.0}
+
+
+def robust_step_target(level: int, step_ms: float, converged: bool) -> dict[str, float | bool]:
+    """Issue 5's target at ``level`` and whether a robust step of ``step_ms`` [ms] meets it
+    (only a ``converged`` one can): ``robust_target_step_ms`` and ``meets_robust_target``,
+    or nothing at a level without a target."""
+    limit = ROBUST_STEP_TARGET_MS.get(level)
+    if limit is None:
+        return {}
+    return {"robust_target_step_ms": limit, "meets_robust_target": converged and step_ms <= limit}
 
 
 def _median_ms(samples: list[float]) -> float:
@@ -81,6 +94,9 @@ def benchmark_level(level: int, repeats: int) -> dict[str, float | int | str]:
         statuses.append(result.status.value)
         residuals.append(result.newton_residual)
     newton_step_ms = _median_ms(samples)
+    converged = statuses.count("ok") == len(statuses) and max(residuals) <= (
+        robust.config.newton_tolerance
+    )
 
     # One simulator (and one factorisation) alive at a time: peak memory is per level.
     del robust, elasticity
@@ -135,6 +151,7 @@ def benchmark_level(level: int, repeats: int) -> dict[str, float | int | str]:
         "cg25_relative_residual": report.relative_residual,
         "peak_rss_mb": peak_mb,
         "repeats": repeats,
+        **robust_step_target(level, newton_step_ms, converged),
     }
 
 
@@ -175,5 +192,21 @@ def run_tissue_benchmark(
         )
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(records, indent=2))  # keep what is measured so far
+    print_robust_targets(records, "newton_step_ms", "Newton step")
     print(f"written: {json_path}")
     return records
+
+
+def print_robust_targets(records: list, key: str, what: str) -> None:
+    """Print issue 5's robust-step target lines for the ``records`` that carry one."""
+    marked = [r for r in records if "robust_target_step_ms" in r]
+    if not marked:
+        return
+    print("\ntargets (issue 5): a converged robust step")
+    for record in marked:
+        verdict = "meets" if record["meets_robust_target"] else "MISSES"
+        label = f"{record['method']:>10} " if "method" in record else ""
+        print(
+            f"  {label}{what} {record['tets']:>6} tets: {record[key]:8.2f} ms <= "
+            f"{record['robust_target_step_ms']:.0f} ms? {verdict}"
+        )

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from agents.cli import main
+from agents.tissue_benchmark import print_robust_targets, robust_step_target
 from tissue.contact.penalty import PenaltyParams
 
 
@@ -46,6 +47,29 @@ def test_bench_contact_writes_every_method_and_mode(tmp_path: Path) -> None:
     assert by["penalty", "robust"]["force_n"] == pytest.approx(
         by["lm", "robust"]["force_n"], rel=0.05
     )
+
+
+def test_robust_step_targets_are_issue_5s(capsys: pytest.CaptureFixture[str]) -> None:
+    """<= 20 / 100 / 500 ms on the 4,126 / 26,220 / 176,506-tet levels, only converged."""
+    assert robust_step_target(4126, 19.9, True) == {
+        "robust_target_step_ms": 20.0,
+        "meets_robust_target": True,
+    }
+    assert robust_step_target(26220, 100.1, True)["meets_robust_target"] is False
+    assert robust_step_target(176506, 499.0, True)["meets_robust_target"] is True
+    assert robust_step_target(176506, 10.0, False)["meets_robust_target"] is False
+    assert robust_step_target(623, 1.0, True) == {}
+    records = [
+        {"method": "lm", "tets": 4141, "step_ms": 12.5, **robust_step_target(4126, 12.5, True)},
+        {"method": "pbd", "tets": 26854, "step_ms": 130.0, **robust_step_target(26220, 130, True)},
+        {"method": "lm", "tets": 571, "step_ms": 2.0},
+    ]
+    print_robust_targets(records, "step_ms", "median step")
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[0] == "targets (issue 5): a converged robust step"
+    assert lines[1].split()[-1] == "meets" and "4141 tets" in lines[1]
+    assert lines[2].split()[-1] == "MISSES" and "pbd" in lines[2]
+    assert len(lines) == 3  # no target at 571 tets
 
 
 def test_bench_tissue_reports_a_converged_newton_step(tmp_path: Path) -> None:
