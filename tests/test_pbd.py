@@ -12,6 +12,7 @@ from tissue.errors import ConfigError
 from tissue.mesh import TetMesh
 from tissue.pbd import PBDConfig, PBDContact
 from tissue.pbd_calibration import calibrate_pbd
+from tissue.phantom import breast_phantom
 from tissue.probe import BoxProbe, Probe
 from tissue.status import StepStatus
 
@@ -177,6 +178,7 @@ def test_divergence_is_reported_and_the_state_kept(
     before = model.node_positions.copy()
     time_before = model.time_s
     monkeypatch.setattr(pbd, "_project_tets", _tets_to_nan)
+    monkeypatch.setattr(pbd, "_project_tets_two_domains", _tets_to_nan)
     result = model.step(*_pose(block, 0.0012))
     assert result.status is StepStatus.DIVERGED
     np.testing.assert_array_equal(model.node_positions, before)
@@ -187,6 +189,7 @@ def test_divergence_is_reported_and_the_state_kept(
 def test_inversion_is_reported(block: TetMesh, monkeypatch: pytest.MonkeyPatch) -> None:
     model = PBDContact(block, PROBE_SHAPE, config=PBDConfig(substeps=1))
     monkeypatch.setattr(pbd, "_project_tets", _tets_invert)
+    monkeypatch.setattr(pbd, "_project_tets_two_domains", _tets_invert)
     result = model.step(*_pose(block, -0.002))
     assert result.status is StepStatus.INVERTED
     assert result.diagnostics["min_volume_ratio"] < 0.0
@@ -303,6 +306,9 @@ def test_volume_floor_leaves_other_tets_and_counts_fixed_node_support() -> None:
         ({"volume_floor": -0.1}, "volume_floor"),
         ({"volume_floor": 1.0}, "volume_floor"),
         ({"volume_floor": float("nan")}, "volume_floor"),
+        ({"sweep_domains": 0}, "sweep_domains"),
+        ({"sweep_domains": 3}, "sweep_domains"),
+        ({"sweep_domains": True}, "sweep_domains"),
     ],
 )
 def test_bad_config_names_the_value(overrides: dict, name: str) -> None:
@@ -335,6 +341,7 @@ def test_configurations_by_mode() -> None:
     assert robust.substeps == pbd.ROBUST_SUBSTEPS > PBDConfig().substeps
     assert robust.volume_compliance_scale == pbd.ROBUST_VOLUME_COMPLIANCE_SCALE
     assert robust.volume_floor == pbd.ROBUST_VOLUME_FLOOR > PBDConfig().volume_floor == 0.0
+    assert (robust.sweep_domains, PBDConfig().sweep_domains) == (2, 1)
     with pytest.raises(ConfigError, match="unknown PBD configuration 'fast'"):
         PBDConfig.for_mode("fast")
 
@@ -382,3 +389,59 @@ def test_substep_kernels_match_the_array_expressions_they_replace() -> None:
     moved = x_kernel + rng.normal(scale=1e-6, size=x.shape)
     pbd._update_velocity(moved, previous, v_kernel, h)
     np.testing.assert_array_equal(v_kernel, (moved - previous) / h)
+
+
+@pytest.mark.parametrize("level", [623, 1363])
+def test_two_domain_order_splits_the_tets_into_node_disjoint_domains(level: int) -> None:
+    mesh = breast_phantom(level)
+    order, bounds = pbd.two_domain_order(mesh.nodes, mesh.tets)
+    np.testing.assert_array_equal(np.sort(order), np.arange(mesh.tet_count))
+    first, second, separator = (order[bounds[i] : bounds[i + 1]] for i in range(3))
+    assert not set(mesh.tets[first].ravel()) & set(mesh.tets[second].ravel())
+    # Balanced, a thin separator, and mesh order kept within each part.
+    assert abs(first.size - second.size) <= 0.05 * mesh.tet_count
+    assert separator.size < 0.3 * mesh.tet_count
+    for part in (first, second, separator):
+        assert np.all(np.diff(part) > 0)
+    order, bounds = pbd.two_domain_order(mesh.nodes, mesh.tets, domains=1)
+    np.testing.assert_array_equal(order, np.arange(mesh.tet_count))
+    assert bounds.tolist() == [0] + [mesh.tet_count] * 3
+
+
+def test_two_domain_sweep_is_the_serial_sweep_in_its_order() -> None:
+    """The two threads' sweep gives the one-thread sweep's bits (on a machine with one
+    core the check still runs, both sides on one thread)."""
+    mesh = breast_phantom(1363)
+    model = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_mode("robust"))
+    rng = np.random.default_rng(5)
+    x0 = mesh.nodes[model._node_order] + rng.normal(scale=2e-4, size=(mesh.node_count, 3))
+    results = []
+    for two_threads in (False, True):
+        x = x0.copy()
+        support = np.zeros_like(x)
+        lam_dev, lam_hyd = np.zeros(mesh.tet_count), np.zeros(mesh.tet_count)
+        args = (x, model._inv_mass, model._tets, model._dm_inv, model._alpha_dev,
+                model._alpha_hyd, model._gamma, lam_dev, lam_hyd, support)  # fmt: skip
+        for _ in range(3):
+            if two_threads:
+                pbd._project_tets_two_domains(*args, model._all_tets, model._sweep_bounds)
+            else:
+                pbd._project_tets(*args, model._all_tets)
+        results.append((x, lam_dev, lam_hyd, support))
+    assert not np.array_equal(results[0][0], x0)
+    for serial, parallel in zip(*results, strict=True):
+        np.testing.assert_array_equal(parallel, serial)
+
+
+def test_parallel_floor_screen_counts_the_tets_below_the_floor() -> None:
+    mesh = breast_phantom(1363)
+    model = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_mode("robust"))
+    rng = np.random.default_rng(7)
+    x = mesh.nodes[model._node_order] + rng.normal(scale=2e-3, size=(mesh.node_count, 3))
+    corners = x[model._tets]
+    edges = np.stack([corners[:, k] - corners[:, 0] for k in (1, 2, 3)], axis=2)
+    ratios = np.linalg.det(edges) * model._inv_det_dm
+    for floor in (0.1, 0.5, 0.9):
+        expected = int(np.count_nonzero(ratios < floor))
+        assert 0 < expected < mesh.tet_count
+        assert pbd._count_below_volume_floor(x, model._tets, model._inv_det_dm, floor) == expected

@@ -31,10 +31,23 @@ sweeps over all constraints (multipliers reset to zero at each substep), and v =
 * Masses: lumped, rho V / 4 per tet corner, from the region densities. Fixed nodes
   (``mesh.fixed_nodes``) get inverse mass 0 and never move.
 * Damping: mass-proportional, v <- v exp(-damping_per_s h) each substep.
-* Solver: plain serial Gauss-Seidel in mesh order (numba). It converges best per sweep and is
-  deterministic; graph colouring would only pay for a parallel sweep, which on the 2 cores
-  this project targets gains at most 2 x against a barrier per colour, and the defaults
-  already run in about 3 ms per step at 4.1k tets.
+* Solver: Gauss-Seidel (numba), deterministic. The paper configuration sweeps the tets in mesh
+  order on one thread. The robust configuration (``sweep_domains`` = 2) sweeps two
+  node-disjoint domains at once, one per thread, then the one-tet layer between them (see
+  :func:`two_domain_order`): a Gauss-Seidel sweep in that order, the same bits on one thread
+  or two, with one parallel region per sweep (graph colouring would need a barrier per
+  colour, a few dozen per sweep). The step renumbers tets and nodes so each domain's data is
+  contiguous: in mesh numbering the two threads wrote to shared cache lines and the sweep
+  was slower on two threads than on one (1.86 against 1.68 ms at 26,220 tets); renumbered,
+  0.93 ms. The separator holds 16 % of the tets at 4,126 tets, 8 % at 26,220 and 4 % at
+  176,506. Below 3,000 unknowns (4,126 tets and coarser) the step runs on one thread anyway
+  (``tissue.solvers.SERIAL_STEP_UNKNOWNS``): there, waking the second thread each sweep costs
+  about what it saves (0.22 ms a sweep on one thread, 0.21 on two with OpenMP's default
+  waiting, 0.14 with spinning workers, which this package does not impose on the process).
+  The paper configuration keeps mesh order because at 10 substeps the order moves the result
+  (4,126 tets, 40 steps of ``bench contact``'s apex press: 0.729 N in mesh order, 0.900 N in
+  two-domain order) and its calibration was fitted in mesh order; at 60 substeps (robust) the
+  order moves that force by 0.05 %, and 0.01 % at 26,220 tets.
 * Contact: the points contact acts on are the volume's free boundary nodes, plus any
   collision-surface vertex (embedded barycentrically in the volume) farther than the median
   boundary edge from every boundary node, so a coarse volume under a fine collision surface
@@ -164,7 +177,15 @@ The sweeps' own kernel is two thirds of it at 4,141 tets and four fifths at 26,8
 which took the robust step from 37.4-37.8 to those 21.3-21.6 ms at 4,141 tets, 159-162 to
 125-129 ms at 26,854 and 989 to 936 ms at 173,229, bit for bit the same trajectories. A
 scalar rewrite of the sweep kernel (no scratch arrays) gained 9 % a sweep (1.58 -> 1.44 ms
-at 26,854 tets, the same bits) and was left out.
+at 26,854 tets, the same bits) and was left out. The two-domain sweep (``sweep_domains`` = 2,
+see Solver above) and the volume floor's two-thread screen from 100,000 tets then took the
+robust step (``probegym bench contact --methods pbd --modes robust``, two alternating runs each
+of the code before and after, a busier machine) from 127.6 / 129.1 to 96.1 / 94.9 ms at
+26,854 tets, 66.1 / 65.9 to 53.9 / 53.6 ms at 12,971, and 970 to 478 ms at 173,229 (one run
+each), 38.3 / 37.4 to 36.3 / 36.8 ms at 6,966; from 4,141 tets down the step runs on one
+thread and is unchanged within the noise (4,141 tets: 23.2 / 23.7 against 22.6 / 24.0 ms).
+Forces and lesion displacements at 10 mm agree to 0.1 %, and the calibration's mismatch
+moved from -0.27 % force, 6.8 % lesion 1 and 9.5 % all lesions to -0.22 %, 6.9 % and 9.6 %.
 
 Damping: the robust configuration damps velocities at :data:`ROBUST_DAMPING_PER_S` = 30/s
 (the paper configuration keeps 2/s). At 2/s the tissue rang after the sudden release (1,363
@@ -254,6 +275,10 @@ _FLOOR_ROUNDS = 8
 _FLOOR_MARGIN = 1e-3
 # At most this many tets are lifted together (one dense solve); more are taken in blocks.
 _FLOOR_BLOCK = 64
+# From this many tets a step on two threads screens for the volume floor on both first: waking
+# the second thread costs 70-80 us here, more than it saves below that (a screen of 26,854
+# tets: 0.11 ms on one thread, 0.12 on two; 173,229 tets: 0.87 against 0.61 ms).
+PARALLEL_SCREEN_TETS = 100_000
 
 # Mismatch bounds the calibrated defaults must meet on the default phantom (measured -0.20 %
 # and 30.2 %; the margin covers platform round-off in the FE reference and Nelder-Mead).
@@ -300,6 +325,11 @@ class PBDConfig:
             [0, 1) (0 = none, as a particle engine; the robust configuration's is
             :data:`ROBUST_VOLUME_FLOOR`): a hard one-sided constraint det F >= floor,
             projected once after each substep's sweeps.
+        sweep_domains: 1 sweeps the tets in mesh order on one thread; 2 sweeps them as two
+            node-disjoint domains on two threads, then the layer between them (see
+            :func:`two_domain_order`; the same result whatever the thread count). The robust
+            configuration's is 2; the paper configuration keeps 1, the order its calibration
+            was fitted with (with its 10 unconverged substeps the order moves the force).
     """
 
     tissue_dt: float = 0.02
@@ -314,6 +344,7 @@ class PBDConfig:
     friction: float = 0.0
     contact_spacing_m: float = 0.0
     volume_floor: float = 0.0
+    sweep_domains: int = 1
 
     def __post_init__(self) -> None:
         _check_number("tissue_dt", self.tissue_dt, "a time step in seconds in (0, 1] (paper: 0.02)")
@@ -326,6 +357,7 @@ class PBDConfig:
             ("substeps", 1),
             ("iterations", 1),
             ("contact_zone_iterations", 0),
+            ("sweep_domains", 1),
         ):
             value = getattr(self, name)
             if (
@@ -335,6 +367,11 @@ class PBDConfig:
             ):
                 raise ConfigError(f"{name} must be an integer >= {smallest}; got {value!r}")
             object.__setattr__(self, name, int(value))
+        if self.sweep_domains > 2:
+            raise ConfigError(
+                f"sweep_domains must be 1 (mesh order, one thread) or 2 (two domains on two "
+                f"threads); got {self.sweep_domains!r}"
+            )
         for name in ("deviatoric_compliance_scale", "volume_compliance_scale"):
             value = getattr(self, name)
             _check_number(name, value, "a positive multiplier of the material's compliance")
@@ -383,6 +420,7 @@ class PBDConfig:
                 volume_compliance_scale=ROBUST_VOLUME_COMPLIANCE_SCALE,
                 damping_per_s=ROBUST_DAMPING_PER_S,
                 volume_floor=ROBUST_VOLUME_FLOOR,
+                sweep_domains=2,
             )
         raise ConfigError(f"unknown PBD configuration {mode!r}; choose 'paper' or 'robust'")
 
@@ -544,6 +582,111 @@ def _project_tets(
         lam_dev[t] += d_dev
         lam_hyd[t] += d_hyd
         _apply(x, inv_mass, tets, t, g, d_dev, gh, d_hyd, support)
+
+
+@nb.njit(parallel=True, cache=True, fastmath=False)
+def _project_tets_two_domains(
+    x: NDArray[np.float64],
+    inv_mass: NDArray[np.float64],
+    tets: NDArray[np.int64],
+    dm_inv: NDArray[np.float64],
+    alpha_dev: NDArray[np.float64],
+    alpha_hyd: NDArray[np.float64],
+    gamma: NDArray[np.float64],
+    lam_dev: NDArray[np.float64],
+    lam_hyd: NDArray[np.float64],
+    support: NDArray[np.float64],
+    order: NDArray[np.int64],
+    bounds: NDArray[np.int64],
+) -> None:
+    """One Gauss-Seidel sweep of every tet in ``order``, its two domains on two threads.
+
+    ``order[bounds[0]:bounds[1]]`` and ``order[bounds[1]:bounds[2]]`` share no node (see
+    :func:`two_domain_order`), so projecting them at the same time is the same, bit for bit,
+    as projecting one after the other; the separator ``order[bounds[2]:bounds[3]]`` follows
+    on one thread. The result is that of :func:`_project_tets` over ``order`` whatever the
+    thread count. Arguments as :func:`_project_tets`; ``bounds`` is (4,).
+    """
+    for part in nb.prange(2):
+        _project_tets(
+            x, inv_mass, tets, dm_inv, alpha_dev, alpha_hyd, gamma, lam_dev, lam_hyd,
+            support, order[bounds[part] : bounds[part + 1]],
+        )  # fmt: skip
+    _project_tets(
+        x, inv_mass, tets, dm_inv, alpha_dev, alpha_hyd, gamma, lam_dev, lam_hyd, support,
+        order[bounds[2] : bounds[3]],
+    )  # fmt: skip
+
+
+def two_domain_order(
+    nodes: NDArray[np.float64], tets: NDArray[np.int64], domains: int = 2
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """A sweep order of the tets as two node-disjoint domains and a separator.
+
+    The tets are cut by their centroids across the mesh's longest extent: domain 0 is the
+    tets below the cut, domain 1 the tets above it with no node of domain 0, and the
+    separator the rest (one layer of tets along the cut). The cut is placed so the two
+    domains hold as many tets as each other. Within each part the tets keep mesh order.
+
+    Args:
+        nodes: node positions [m], (node_count, 3).
+        tets: (tet_count, 4) node indices.
+        domains: 2, or 1 for mesh order as a single domain (bounds (0, n, n, n)).
+
+    Returns:
+        ``order`` (tet_count,), a permutation of the tets, and ``bounds`` (4,): the parts are
+        ``order[bounds[i]:bounds[i + 1]]`` for domain 0, domain 1 and the separator.
+    """
+    count = tets.shape[0]
+    if domains == 1:
+        return np.arange(count, dtype=np.int64), np.array([0, count, count, count])
+    centroids = nodes[tets].mean(axis=1)
+    axis = int(np.argmax(np.ptp(nodes, axis=0)))
+    by_axis = np.argsort(centroids[:, axis], kind="stable")
+
+    def parts(cut: int) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+        below = np.zeros(count, dtype=bool)
+        below[by_axis[:cut]] = True
+        touched = np.zeros(nodes.shape[0], dtype=bool)
+        touched[tets[below].ravel()] = True
+        shares = touched[tets].any(axis=1)
+        return (
+            np.flatnonzero(below),
+            np.flatnonzero(~below & ~shares),
+            np.flatnonzero(~below & shares),
+        )
+
+    # Domain 0 grows and domain 1 shrinks with the cut: bisect for equal sizes.
+    low, high = 0, count
+    while high - low > 1:
+        middle = (low + high) // 2
+        first, second, _ = parts(middle)
+        if first.size < second.size:
+            low = middle
+        else:
+            high = middle
+    first, second, separator = parts(low)
+    order = np.concatenate([first, second, separator]).astype(np.int64)
+    bounds = np.cumsum([0, first.size, second.size, separator.size]).astype(np.int64)
+    return order, bounds
+
+
+@nb.njit(parallel=True, cache=True)
+def _count_below_volume_floor(
+    x: NDArray[np.float64],
+    tets: NDArray[np.int64],
+    inv_det_dm: NDArray[np.float64],
+    volume_floor: float,
+) -> int:
+    """How many tets have det F < ``volume_floor``: :func:`_enforce_volume_floor`'s screen on
+    two threads, run first on large meshes (from :data:`PARALLEL_SCREEN_TETS` tets), where
+    no tet is below the floor in nearly every substep; it reads every tet every substep
+    (0.87 ms a substep, 53 ms of a 485 ms robust step, at 173,229 tets on one thread)."""
+    count = 0
+    for t in nb.prange(tets.shape[0]):
+        if _edge_determinant(x, tets, t) * inv_det_dm[t] < volume_floor:
+            count += 1
+    return count
 
 
 @nb.njit(cache=True)
@@ -941,8 +1084,8 @@ class PBDContact(ContactModel):
         the probe must move less than about half its thickness per substep (1.3 mm for the
         linear face, i.e. about 0.6 m/s at the defaults) or points can tunnel through it.
         Frictionless only. Forces are time averages over the step and include inertia during
-        fast motion. Stresses are not reported. Serial Gauss-Seidel (one core): about 3 ms
-        per step at 4.1k tets with the defaults.
+        fast motion. Stresses are not reported. About 3 ms per step at 4.1k tets with the
+        defaults (one thread); the robust configuration's sweep uses two threads.
     """
 
     method = ContactMethod.PBD
@@ -966,26 +1109,40 @@ class PBDContact(ContactModel):
         self.config = config or PBDConfig()
         cfg = self.config
 
-        nodes, tets = mesh.nodes, mesh.tets
+        # The step runs in its own numbering (see two_domain_order): the tets in sweep order,
+        # two node-disjoint domains and their separator, and the nodes in the order the tets
+        # first use them, so that the two threads sweeping the domains write to separate
+        # memory. (In mesh numbering their nodes and multipliers share cache lines: the
+        # two-thread sweep was slower than one thread, 1.86 against 1.68 ms at 26,220 tets.)
+        # The state (_x, _v) and everything public stay in mesh numbering.
+        order, self._sweep_bounds = two_domain_order(mesh.nodes, mesh.tets, cfg.sweep_domains)
+        first_use = np.unique(mesh.tets[order].ravel(), return_index=True)
+        used_in_order = first_use[0][np.argsort(first_use[1])]
+        unused = np.setdiff1d(np.arange(mesh.node_count), used_in_order)
+        self._node_order = np.concatenate([used_in_order, unused]).astype(np.int64)
+        self._step_node_of_mesh = np.empty(mesh.node_count, dtype=np.int64)
+        self._step_node_of_mesh[self._node_order] = np.arange(mesh.node_count)
+        nodes = mesh.nodes[self._node_order]
+        tets = np.ascontiguousarray(self._step_node_of_mesh[mesh.tets[order]])
+        self._tets = tets
+
         edges = np.stack([nodes[tets[:, k]] - nodes[tets[:, 0]] for k in (1, 2, 3)], axis=2)
         self._dm_inv = np.ascontiguousarray(np.linalg.inv(edges))
         self._inv_det_dm = 1.0 / np.linalg.det(edges)
-        self._rest_volume = mesh.tet_volumes()
-        mu, lam, rho = self.materials.per_tet(mesh.region)
+        self._rest_volume = mesh.tet_volumes()[order]
+        mu, lam, rho = self.materials.per_tet(mesh.region[order])
         lam_stable = lam + mu
         mass = np.bincount(
             tets.ravel(),
             weights=np.repeat(rho * self._rest_volume / 4.0, 4),
             minlength=mesh.node_count,
         )
-        self.lumped_mass = mass
+        self.lumped_mass = mass[self._step_node_of_mesh]  # mesh numbering
         inv_mass = np.zeros(mesh.node_count)
         free = mass > 0.0
         inv_mass[free] = 1.0 / mass[free]
-        inv_mass[mesh.fixed_nodes] = 0.0
+        inv_mass[self._step_node_of_mesh[mesh.fixed_nodes]] = 0.0
         self._inv_mass = inv_mass
-        self._fixed_mask = np.zeros(mesh.node_count, dtype=bool)
-        self._fixed_mask[mesh.fixed_nodes] = True
         h = cfg.substep_dt
         mu_model = mu / cfg.deviatoric_compliance_scale
         lam_model = lam_stable / cfg.volume_compliance_scale
@@ -995,13 +1152,15 @@ class PBDContact(ContactModel):
         # forces cancel at rest (mu I + lambda' (1 - gamma) I = 0).
         self._gamma = 1.0 + mu_model / lam_model
         self._contact_alpha = cfg.contact_compliance_m_per_n / h**2
-        self._point_nodes, self._point_weights = _contact_points(
+        point_nodes, self._point_weights = _contact_points(
             mesh, self.surface, cfg.contact_spacing_m
         )
+        self._point_nodes = point_nodes  # mesh numbering, for the public positions
+        self._step_point_nodes = np.ascontiguousarray(self._step_node_of_mesh[point_nodes])
         self._lam_dev = np.zeros(mesh.tet_count)
         self._lam_hyd = np.zeros(mesh.tet_count)
         self._all_tets = np.arange(mesh.tet_count, dtype=np.int64)
-        # Node -> incident tets (CSR), for the contact zone.
+        # Node -> incident tets (CSR, step numbering), for the contact zone.
         self._node_tets = np.argsort(tets.ravel(), kind="stable").astype(np.int64) // 4
         self._node_tet_start = np.concatenate(
             [[0], np.cumsum(np.bincount(tets.ravel(), minlength=mesh.node_count))]
@@ -1051,8 +1210,8 @@ class PBDContact(ContactModel):
         start_position, start_quat = self._previous_pose or (end_position, end_quat)
         if float(np.dot(start_quat, end_quat)) < 0.0:
             start_quat = -start_quat  # the short way round for nlerp
-        x = self._x.copy()
-        v = self._v.copy()
+        x = self._x[self._node_order]  # step numbering (a copy)
+        v = self._v[self._node_order]
         x_previous = np.empty_like(x)
         point_count = self._point_nodes.shape[0]
         near = np.empty(point_count, dtype=np.int64)
@@ -1066,6 +1225,14 @@ class PBDContact(ContactModel):
         max_contacts = 0
         detect_s = 0.0
         floor_hits = 0
+        # The two-domain sweep is the one-thread sweep in the same order, bit for bit; on one
+        # thread the plain kernel skips the parallel launch.
+        two_threads = cfg.sweep_domains == 2 and nb.get_num_threads() > 1
+        screen_first = two_threads and self.mesh.tet_count >= PARALLEL_SCREEN_TETS
+        tissue_args = (
+            x, self._inv_mass, self._tets, self._dm_inv, self._alpha_dev, self._alpha_hyd,
+            self._gamma, self._lam_dev, self._lam_hyd, support_step,
+        )  # fmt: skip
         for substep in range(1, cfg.substeps + 1):
             fraction = substep / cfg.substeps
             position = (1.0 - fraction) * start_position + fraction * end_position
@@ -1081,37 +1248,30 @@ class PBDContact(ContactModel):
             )
             detect_s += time.perf_counter() - tic
             lam_contact = np.zeros(contact_points.shape[0])
-            zone = self._all_tets
             for sweep in range(cfg.iterations + cfg.contact_zone_iterations):
-                if sweep == cfg.iterations:
+                if sweep < cfg.iterations:
+                    if two_threads:
+                        _project_tets_two_domains(*tissue_args, self._all_tets, self._sweep_bounds)
+                    else:
+                        _project_tets(*tissue_args, self._all_tets)
+                else:
                     if not contact_points.size:
                         break
-                    zone = _contact_zone(
-                        self._point_nodes,
-                        self._point_weights,
-                        contact_points,
-                        self._node_tet_start,
-                        self._node_tets,
-                        self._all_tets,
-                    )
-                _project_tets(
-                    x,
-                    self._inv_mass,
-                    self.mesh.tets,
-                    self._dm_inv,
-                    self._alpha_dev,
-                    self._alpha_hyd,
-                    self._gamma,
-                    self._lam_dev,
-                    self._lam_hyd,
-                    support_step,
-                    zone,
-                )
+                    if sweep == cfg.iterations:
+                        zone = _contact_zone(
+                            self._step_point_nodes,
+                            self._point_weights,
+                            contact_points,
+                            self._node_tet_start,
+                            self._node_tets,
+                            self._all_tets,
+                        )
+                    _project_tets(*tissue_args, zone)
                 if contact_points.size:
                     _project_contacts(
                         x,
                         self._inv_mass,
-                        self._point_nodes,
+                        self._step_point_nodes,
                         self._point_weights,
                         contact_points,
                         normals,
@@ -1119,11 +1279,15 @@ class PBDContact(ContactModel):
                         self._contact_alpha,
                         lam_contact,
                     )
-            if cfg.volume_floor > 0.0:
+            if cfg.volume_floor > 0.0 and not (
+                screen_first
+                and _count_below_volume_floor(x, self._tets, self._inv_det_dm, cfg.volume_floor)
+                == 0
+            ):
                 floor_hits += _enforce_volume_floor(
                     x,
                     self._inv_mass,
-                    self.mesh.tets,
+                    self._tets,
                     self._dm_inv,
                     self._inv_det_dm,
                     cfg.volume_floor,
@@ -1147,15 +1311,15 @@ class PBDContact(ContactModel):
             diagnostics["support_force_n"] = np.full(3, np.nan)
             # Nothing non-finite is stored: the state before the step stays.
             return StepStatus.DIVERGED, np.zeros((0, 3)), np.zeros((0, 3)), diagnostics
-        self._x = x
-        self._v = v
-        min_ratio = float(_min_volume_ratio(x, self.mesh.tets, self._rest_volume))
+        min_ratio = float(_min_volume_ratio(x, self._tets, self._rest_volume))
+        self._x = x[self._step_node_of_mesh]  # back to mesh numbering
+        self._v = v[self._step_node_of_mesh]
         diagnostics["min_volume_ratio"] = min_ratio
         # Force of the base on the tissue: minus the elastic constraint forces at fixed nodes,
         # averaged over the step (impulse / tissue_dt).
         diagnostics["support_force_n"] = -support.sum(axis=0) / cfg.tissue_dt
         in_contact = np.flatnonzero(np.any(impulse != 0.0, axis=1))
-        points_world = self._positions(x)[in_contact]
+        points_world = self._positions(self._x)[in_contact]
         forces = -impulse[in_contact] / cfg.tissue_dt
         status = StepStatus.INVERTED if not min_ratio > 0.0 else StepStatus.OK
         return status, points_world, forces, diagnostics
@@ -1188,7 +1352,7 @@ class PBDContact(ContactModel):
             points [m] (k, 3) (the closest probe surface points), world frame.
         """
         count = _points_near(
-            x, self._point_nodes, self._point_weights, position, reach, near, near_positions
+            x, self._step_point_nodes, self._point_weights, position, reach, near, near_positions
         )
         if count == 0:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3))
