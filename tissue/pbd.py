@@ -42,8 +42,9 @@ sweeps over all constraints (multipliers reset to zero at each substep), and v =
   0.93 ms. The separator holds 16 % of the tets at 4,126 tets, 8 % at 26,220 and 4 % at
   176,506. Below 3,000 unknowns (4,126 tets and coarser) the step runs on one thread anyway
   (``tissue.solvers.SERIAL_STEP_UNKNOWNS``): there, waking the second thread each sweep costs
-  about what it saves (0.22 ms a sweep on one thread, 0.21 on two with OpenMP's default
-  waiting, 0.14 with spinning workers, which this package does not impose on the process).
+  about what it saves (0.22 ms a sweep on one thread, 0.21 on two with the passive waiting
+  ``tissue`` sets by default, 0.14 with spinning workers, ``OMP_WAIT_POLICY=active``, which
+  slow everything else on a busy machine: see ``tissue/__init__.py``).
   The paper configuration keeps mesh order because at 10 substeps the order moves the result
   (4,126 tets, 40 steps of ``bench contact``'s apex press: 0.729 N in mesh order, 0.900 N in
   two-domain order) and its calibration was fitted in mesh order; at 60 substeps (robust) the
