@@ -15,7 +15,7 @@ from tissue.mesh import TetMesh
 from tissue.pbd import PBDConfig, PBDContact
 from tissue.pbd_calibration import calibrate_pbd
 from tissue.phantom import breast_phantom
-from tissue.probe import BoxProbe, Probe
+from tissue.probe import BoxProbe, Probe, quat_to_matrix
 from tissue.status import StepStatus
 
 # A 40 x 40 x 20 mm block on a fixed base, pressed at its centre by a 16 x 16 mm box.
@@ -373,12 +373,23 @@ def test_substep_kernels_match_the_array_expressions_they_replace() -> None:
     centre, reach = np.array([0.004, -0.003, 0.01]), 0.025
     near = np.empty(150, dtype=np.int64)
     positions = np.empty((150, 3))
-    count = pbd._points_near(x, point_nodes, point_weights, centre, reach, near, positions)
     expected_positions = np.einsum("pk,pka->pa", point_weights, x[point_nodes])
-    expected = np.flatnonzero(np.sum((expected_positions - centre) ** 2, axis=1) <= reach**2)
-    assert 0 < count < 150
-    np.testing.assert_array_equal(near[:count], expected)
-    np.testing.assert_array_equal(positions[:count], expected_positions[expected])
+    in_ball = np.sum((expected_positions - centre) ** 2, axis=1) <= reach**2
+    rotation = quat_to_matrix([0.9, 0.2, -0.3, 0.1])
+    local = (expected_positions - centre) @ rotation
+    for low, high in (
+        (np.full(3, -1.0), np.full(3, 1.0)),  # a box holding the ball: the ball alone
+        (np.array([-0.02, -0.01, -0.005]), np.array([0.02, 0.0, 0.005])),  # a slab
+    ):
+        count = pbd._points_near(
+            x, point_nodes, point_weights, centre, reach, rotation, low, high, near, positions
+        )
+        in_box = np.all((local >= low) & (local <= high), axis=1)
+        expected = np.flatnonzero(in_ball & in_box)
+        assert 0 < count < 150
+        np.testing.assert_array_equal(near[:count], expected)
+        np.testing.assert_array_equal(positions[:count], expected_positions[expected])
+    assert count < np.count_nonzero(in_ball)  # the slab left some of the ball out
 
     v = rng.normal(size=(200, 3))
     damping, h = 0.99, 1.0 / 3000.0
@@ -391,6 +402,31 @@ def test_substep_kernels_match_the_array_expressions_they_replace() -> None:
     moved = x_kernel + rng.normal(scale=1e-6, size=x.shape)
     pbd._update_velocity(moved, previous, v_kernel, h)
     np.testing.assert_array_equal(v_kernel, (moved - previous) / h)
+
+    # A substep's start and end: the same bits as the numpy they replace.
+    lam_dev, lam_hyd = rng.normal(size=50), rng.normal(size=50)
+    support_step = rng.normal(size=x.shape)
+    x_start, v_start, previous_start = x.copy(), v.copy(), np.empty_like(x)
+    pbd._start_substep(x_start, v_start, previous_start, damping, h, lam_dev, lam_hyd, support_step)
+    np.testing.assert_array_equal(x_start, x + h * v_numpy)
+    assert not lam_dev.any() and not lam_hyd.any() and not support_step.any()
+    support_step = rng.normal(size=x.shape)
+    support = rng.normal(size=x.shape)
+    support_numpy = support.copy()
+    support_numpy += support_step / h
+    points = np.array([3, 7, 3, 12])  # a point twice, as np.add.at allows
+    normals = rng.normal(size=(4, 3))
+    lam = np.array([0.5, 0.0, 1e-3, 2.0])
+    impulse = rng.normal(size=(20, 3))
+    impulse_numpy = impulse.copy()
+    np.add.at(impulse_numpy, points, normals * (lam / h)[:, None])
+    pressing = pbd._end_substep(
+        moved, previous, v_kernel, h, support_step, support, points, normals, lam, impulse
+    )
+    assert pressing == 3
+    np.testing.assert_array_equal(v_kernel, (moved - previous) / h)
+    np.testing.assert_array_equal(support, support_numpy)
+    np.testing.assert_array_equal(impulse, impulse_numpy)
 
 
 @pytest.mark.parametrize("level", [623, 1363])

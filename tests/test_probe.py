@@ -278,6 +278,25 @@ def test_surface_is_closed_outward_and_on_the_zero_level(shape):
     assert np.linalg.norm(vertices, axis=1).max() <= shape.bounding_radius_m + 1e-12
 
 
+@pytest.mark.parametrize("shape", analytic_shapes(), ids=lambda s: s.name)
+def test_local_bounds_hold_the_shape_and_are_tight(shape):
+    """Every point inside the probe (SDF < 0) lies in its local box, and the box is no
+    larger than the shape's extent plus its documented pad (a broad phase that missed a
+    point would miss a contact; one far too large would be no broad phase)."""
+    low, high = shape.local_bounds_m()
+    points = random_points(shape, 200_000, seed=11)
+    distance, _ = shape.signed_distance(points)
+    inside = points[distance < 0.0]
+    assert inside.shape[0] > 500
+    assert np.all(inside >= low) and np.all(inside <= high)
+    # The points projected onto the surface reach within two pads of every side of the box.
+    surface = points - distance[:, None] * shape.signed_distance(points)[1]
+    pad = 0.01 * shape.bounding_radius_m
+    assert np.all(surface.min(axis=0) >= low) and np.all(surface.max(axis=0) <= high)
+    assert np.all(surface.min(axis=0) - low <= 2 * pad)
+    assert np.all(high - surface.max(axis=0) <= 2 * pad)
+
+
 # ----------------------------------------------------------------------------------------
 # Meshes
 

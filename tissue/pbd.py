@@ -253,7 +253,7 @@ from tissue.contact.base import ContactMethod, ContactModel, SurfacePoints
 from tissue.errors import ConfigError, TissueInputError
 from tissue.material import TissueMaterials
 from tissue.mesh import TetMesh, boundary_faces, triangle_grid
-from tissue.probe import ProbeShape, quat_to_matrix
+from tissue.probe import ProbeShape, unit_quat_to_matrix
 from tissue.status import StepStatus
 
 # Calibrated compliance scales (see the module docstring and
@@ -904,17 +904,25 @@ def _points_near(
     point_weights: NDArray[np.float64],
     centre: NDArray[np.float64],
     reach: float,
+    rotation: NDArray[np.float64],
+    low: NDArray[np.float64],
+    high: NDArray[np.float64],
     near: NDArray[np.int64],
     positions: NDArray[np.float64],
 ) -> int:
-    """The contact points within ``reach`` [m] of ``centre`` [m] (3,): writes their indices to
-    ``near`` and their positions [m] to ``positions`` (both sized for every point) and
-    returns how many. One pass over the embedding, no array of all points' positions: this
-    runs every substep, and detection with the whole-array version (einsum, then a distance
-    per point) took 0.32 ms a substep at 4,126 tets, 19 ms of a 49 ms robust step (cProfile,
-    ``bench contact``'s apex press). The sums are taken in the order numpy takes them (the
-    four weighted nodes in turn, then the three squared components), so the points found
-    and their positions are the same to the bit."""
+    """The contact points within ``reach`` [m] of ``centre`` [m] (3,) and, in the frame of
+    ``rotation`` (3, 3) about ``centre`` (local = (p - centre) R), inside the box from
+    ``low`` to ``high`` [m] (3,) each: writes their indices to ``near`` and their positions
+    [m] to ``positions`` (both sized for every point) and returns how many.
+
+    One pass over the embedding, no array of all points' positions: this runs every
+    substep, and detection with the whole-array version (einsum, then a distance per point)
+    took 0.32 ms a substep at 4,126 tets, 19 ms of a 49 ms robust step (cProfile, ``bench
+    contact``'s apex press). The sums are taken in the order numpy takes them (the four
+    weighted nodes in turn, then the three squared components), so the points found and
+    their positions are the same to the bit. The box (the probe's local bounds grown by
+    the contact margin) keeps the exact SDF off points that cannot be near the probe: at
+    4,126 tets the ball about the face holds 581 points, the box about a tenth of them."""
     count = 0
     reach2 = reach * reach
     for p in range(point_nodes.shape[0]):
@@ -930,7 +938,14 @@ def _points_near(
         d0 = p0 - centre[0]
         d1 = p1 - centre[1]
         d2 = p2 - centre[2]
-        if d0 * d0 + d1 * d1 + d2 * d2 <= reach2:
+        if d0 * d0 + d1 * d1 + d2 * d2 > reach2:
+            continue
+        inside = True
+        for b in range(3):
+            local = d0 * rotation[0, b] + d1 * rotation[1, b] + d2 * rotation[2, b]
+            if local < low[b] or local > high[b]:
+                inside = False
+        if inside:
             near[count] = p
             positions[count, 0] = p0
             positions[count, 1] = p1
@@ -965,6 +980,60 @@ def _update_velocity(
     for i in range(x.shape[0]):
         for a in range(3):
             v[i, a] = (x[i, a] - x_previous[i, a]) / h
+
+
+@nb.njit(cache=True)
+def _start_substep(
+    x: NDArray[np.float64],
+    v: NDArray[np.float64],
+    x_previous: NDArray[np.float64],
+    damping: float,
+    h: float,
+    lam_dev: NDArray[np.float64],
+    lam_hyd: NDArray[np.float64],
+    support_step: NDArray[np.float64],
+) -> None:
+    """A substep's start in one compiled call: :func:`_predict`, and the substep's tet
+    multipliers (tet_count,) and fixed-node support (node_count, 3) set to zero."""
+    _predict(x, v, x_previous, damping, h)
+    lam_dev[:] = 0.0
+    lam_hyd[:] = 0.0
+    support_step[:] = 0.0
+
+
+@nb.njit(cache=True)
+def _end_substep(
+    x: NDArray[np.float64],
+    x_previous: NDArray[np.float64],
+    v: NDArray[np.float64],
+    h: float,
+    support_step: NDArray[np.float64],
+    support: NDArray[np.float64],
+    points: NDArray[np.int64],
+    normals: NDArray[np.float64],
+    lam: NDArray[np.float64],
+    impulse: NDArray[np.float64],
+) -> int:
+    """A substep's end in one compiled call (after its sweeps and volume floor): the
+    velocity update (:func:`_update_velocity`), the step's support sum ``support`` +=
+    ``support_step`` / h [N s] (node_count, 3), and each contact's impulse n lambda / h [N s]
+    added to its point's row of ``impulse`` (point_count, 3), ``points``, ``normals`` and
+    ``lam`` as :func:`_project_contacts`'. Returns how many contacts carry a force. The
+    arithmetic is numpy's (``support += support_step / h``, ``np.add.at``), to the bit; one
+    call instead of five saves about 15 us a substep (1 ms of a 22 ms robust step at 4,126
+    tets)."""
+    _update_velocity(x, x_previous, v, h)
+    for i in range(support.shape[0]):
+        for a in range(3):
+            support[i, a] += support_step[i, a] / h
+    pressing = 0
+    for k in range(points.shape[0]):
+        scale = lam[k] / h
+        for a in range(3):
+            impulse[points[k], a] += normals[k, a] * scale
+        if lam[k] != 0.0:
+            pressing += 1
+    return pressing
 
 
 @nb.njit(cache=True)
@@ -1223,6 +1292,9 @@ class PBDContact(ContactModel):
         support_step = np.zeros_like(support)
         shape = self.probe.shape
         reach = shape.bounding_radius_m + cfg.contact_margin_m
+        bounds = shape.local_bounds_m()
+        low = bounds[0] - cfg.contact_margin_m
+        high = bounds[1] + cfg.contact_margin_m
         max_contacts = 0
         detect_s = 0.0
         floor_hits = 0
@@ -1238,14 +1310,11 @@ class PBDContact(ContactModel):
             fraction = substep / cfg.substeps
             position = (1.0 - fraction) * start_position + fraction * end_position
             quat = (1.0 - fraction) * start_quat + fraction * end_quat
-            rotation = quat_to_matrix(quat)
-            _predict(x, v, x_previous, damping, h)
-            self._lam_dev[:] = 0.0
-            self._lam_hyd[:] = 0.0
-            support_step[:] = 0.0
+            rotation = unit_quat_to_matrix(quat / np.linalg.norm(quat))
+            _start_substep(x, v, x_previous, damping, h, self._lam_dev, self._lam_hyd, support_step)
             tic = time.perf_counter()
             contact_points, normals, anchors = self._detect(
-                x, position, rotation, shape, reach, near, near_positions
+                x, position, rotation, shape, (reach, low, high), near, near_positions
             )
             detect_s += time.perf_counter() - tic
             lam_contact = np.zeros(contact_points.shape[0])
@@ -1294,11 +1363,11 @@ class PBDContact(ContactModel):
                     cfg.volume_floor,
                     support_step,
                 )
-            _update_velocity(x, x_previous, v, h)
-            support += support_step / h
-            if contact_points.size:
-                np.add.at(impulse, contact_points, normals * (lam_contact / h)[:, None])
-                max_contacts = max(max_contacts, int(np.count_nonzero(lam_contact)))
+            pressing = _end_substep(
+                x, x_previous, v, h, support_step, support, contact_points, normals,
+                lam_contact, impulse,
+            )  # fmt: skip
+            max_contacts = max(max_contacts, pressing)
 
         diagnostics: dict[str, Any] = {
             "substeps": cfg.substeps,
@@ -1339,22 +1408,26 @@ class PBDContact(ContactModel):
         position: NDArray[np.float64],
         rotation: NDArray[np.float64],
         shape: ProbeShape,
-        reach: float,
+        broad_phase: tuple[float, NDArray[np.float64], NDArray[np.float64]],
         near: NDArray[np.int64],
         near_positions: NDArray[np.float64],
     ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
         """Contact candidates at predicted positions, for a probe at (position, rotation).
 
-        ``near`` (point_count,) and ``near_positions`` (point_count, 3) are scratch for
-        :func:`_points_near`, allocated once per step.
+        ``broad_phase``: :func:`_points_near`'s reach [m] and probe-frame box (low, high
+        [m], (3,) each), both grown by the contact margin. ``near`` (point_count,) and
+        ``near_positions`` (point_count, 3) are scratch for :func:`_points_near`, allocated
+        once per step.
 
         Returns:
             surface point indices (k,), probe outward normals (k, 3) and tangent-plane anchor
             points [m] (k, 3) (the closest probe surface points), world frame.
         """
+        reach, low, high = broad_phase
         count = _points_near(
-            x, self._step_point_nodes, self._point_weights, position, reach, near, near_positions
-        )
+            x, self._step_point_nodes, self._point_weights, position, reach, rotation, low, high,
+            near, near_positions,
+        )  # fmt: skip
         if count == 0:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3))
         points = near_positions[:count]

@@ -81,6 +81,9 @@ PROBE_SPEC_FORMS = (
 # radius of the built-in shapes (the face's 1.35 mm edge) and far above round-off in the
 # normal.
 _HESSIAN_STEP_M = 1e-6
+# How much ProbeShape.local_bounds_m widens the box of the surface's vertices, as a fraction
+# of the bounding radius (0.3 mm for the default face).
+_LOCAL_BOUNDS_PAD = 0.01
 
 
 class ProbeShape(abc.ABC):
@@ -131,6 +134,25 @@ class ProbeShape(abc.ABC):
             _, behind = self.signed_distance(points - offset)
             hessian[:, :, axis] = (ahead - behind) / (2.0 * _HESSIAN_STEP_M)
         return 0.5 * (hessian + hessian.transpose(0, 2, 1))
+
+    def local_bounds_m(self) -> NDArray[np.float64]:
+        """An axis-aligned box in the probe frame that holds the whole shape [m], shape
+        (2, 3): its lowest and highest corner. A cheap, tighter broad phase than
+        ``bounding_radius_m`` for an elongated probe (the default face is 53 mm long and 13
+        mm wide: a ball about it holds 5-6 times the surface points that its box does).
+
+        The box of :meth:`surface`'s vertices, widened on every side by
+        :data:`_LOCAL_BOUNDS_PAD` of the bounding radius: the built-in shapes' surfaces
+        include their extreme points, and the pad covers round-off. A subclass whose surface
+        is inscribed in the shape by more than the pad must override this.
+        """
+        cached = getattr(self, "_local_bounds", None)
+        if cached is None:
+            vertices, _ = self.surface()
+            pad = _LOCAL_BOUNDS_PAD * self.bounding_radius_m
+            cached = np.array([vertices.min(axis=0) - pad, vertices.max(axis=0) + pad])
+            self._local_bounds = cached
+        return cached.copy()
 
     @abc.abstractmethod
     def surface(self) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
@@ -828,7 +850,14 @@ def quat_to_matrix(quat_wxyz: ArrayLike) -> NDArray[np.float64]:
     Raises:
         ConfigError: a quaternion that is zero, non-finite or not of length 4.
     """
-    w, x, y, z = _normalised_quat(quat_wxyz)
+    return unit_quat_to_matrix(_normalised_quat(quat_wxyz))
+
+
+def unit_quat_to_matrix(quat: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Rotation matrix, shape (3, 3), of a unit quaternion (w, x, y, z), shape (4,), taken as
+    it is: no check and no normalisation (for inner loops that normalise their own; any
+    other caller wants :func:`quat_to_matrix`)."""
+    w, x, y, z = (float(c) for c in quat)
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
