@@ -987,7 +987,8 @@ def _points_near(
     weighted nodes in turn, then the three squared components), so the points found and
     their positions are the same to the bit. The box (the probe's local bounds grown by
     the contact margin) keeps the exact SDF off points that cannot be near the probe: at
-    4,126 tets the ball about the face holds 581 points, the box about a tenth of them."""
+    4,126 tets, 6 mm into the apex press, the ball about the face holds 571 of the 2,515
+    points and the box 54."""
     count = 0
     reach2 = reach * reach
     for p in range(point_nodes.shape[0]):
@@ -1007,8 +1008,8 @@ def _points_near(
             continue
         inside = True
         for b in range(3):
-            local = d0 * rotation[0, b] + d1 * rotation[1, b] + d2 * rotation[2, b]
-            if local < low[b] or local > high[b]:
+            along = d0 * rotation[0, b] + d1 * rotation[1, b] + d2 * rotation[2, b]
+            if along < low[b] or along > high[b]:
                 inside = False
         if inside:
             near[count] = p

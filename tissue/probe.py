@@ -139,7 +139,8 @@ class ProbeShape(abc.ABC):
         """An axis-aligned box in the probe frame that holds the whole shape [m], shape
         (2, 3): its lowest and highest corner. A cheap, tighter broad phase than
         ``bounding_radius_m`` for an elongated probe (the default face is 53 mm long and 13
-        mm wide: a ball about it holds 5-6 times the surface points that its box does).
+        mm wide: at 4,126 tets, 6 mm into the apex press, the ball about it holds 571 of PBD's
+        contact points and its box 54).
 
         The box of :meth:`surface`'s vertices, widened on every side by
         :data:`_LOCAL_BOUNDS_PAD` of the bounding radius: the built-in shapes' surfaces
