@@ -1085,9 +1085,8 @@ def _end_substep(
     ``support_step`` / h [N s] (node_count, 3), and each contact's impulse n lambda / h [N s]
     added to its point's row of ``impulse`` (point_count, 3), ``points``, ``normals`` and
     ``lam`` as :func:`_project_contacts`'. Returns how many contacts carry a force. The
-    arithmetic is numpy's (``support += support_step / h``, ``np.add.at``), to the bit; one
-    call instead of five saves about 15 us a substep (1 ms of a 22 ms robust step at 4,126
-    tets)."""
+    arithmetic is numpy's (``support += support_step / h``, ``np.add.at``), to the bit. Timed
+    on the 4,126-tet apex press: about 13 us a substep as five calls, 6 us as this one."""
     _update_velocity(x, x_previous, v, h)
     for i in range(support.shape[0]):
         for a in range(3):
