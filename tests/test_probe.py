@@ -23,6 +23,7 @@ from tissue.probe import (
     matrix_to_quat,
     parse_probe_spec,
     quat_to_matrix,
+    unit_quat_to_matrix,
 )
 
 PUBLISHED_PROBE = (
@@ -415,6 +416,17 @@ def test_quaternion_matrix_round_trip():
     # MuJoCo's (w, x, y, z): a quarter turn about z takes x to y.
     quarter = quat_to_matrix([math.cos(math.pi / 4), 0, 0, math.sin(math.pi / 4)])
     np.testing.assert_allclose(quarter @ [1, 0, 0], [0, 1, 0], atol=1e-15)
+
+
+def test_a_batch_of_quaternions_gives_each_ones_matrix_to_the_bit():
+    """PBD turns a step's 60 substep poses into matrices at once; each must be the matrix
+    one quaternion at a time gives (the trajectories depend on it to the bit)."""
+    quats = np.array(random_rotations(50))
+    batch = unit_quat_to_matrix(quats)
+    assert batch.shape == (50, 3, 3)
+    for quat, matrix in zip(quats, batch, strict=True):
+        np.testing.assert_array_equal(matrix, unit_quat_to_matrix(quat))
+        np.testing.assert_allclose(matrix, quat_to_matrix(quat), atol=1e-15)
 
 
 def test_bad_rotations_and_quaternions_are_rejected():

