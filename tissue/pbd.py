@@ -199,7 +199,11 @@ freedoms (Solver, above): robust step 21.5 / 21.7 / 23.3 -> 18.9 / 18.9 / 19.0 m
 tets, 90.9 / 92.0 / 92.2 -> 80.0 / 81.4 / 81.7 ms at 26,854, 6.7-7.1 -> 5.3 ms at 571; the
 paper configuration's 3.3-3.6 -> 2.9-3.0 ms at 4,141 and 19.1-20.0 -> 17.1-17.9 ms at 26,854
 (``probegym bench contact --levels 623,4126,26220 --methods pbd``, three alternating runs
-each of the code before and after; the same forces to 1e-4 N, the same step statuses).
+each of the code before and after; the same forces to 1e-4 N, the same step statuses; a full
+``bench contact`` run on that code gave 20.06 ms at 4,141 tets). With the substep poses then
+computed at once per step (bit for bit the same), three more alternating runs on a busier
+machine: 22.7 / 23.4 / 24.3 -> 19.3 / 19.5 / 19.8 ms at 4,141 tets, 94.0-95.8 -> 80.6-84.0 ms
+at 26,854: at issue 5's 20 ms line at 4,141 tets, under it in six runs of seven.
 
 Damping: the robust configuration damps velocities at :data:`ROBUST_DAMPING_PER_S` = 30/s
 (the paper configuration keeps 2/s). At 2/s the tissue rang after the sudden release (1,363
