@@ -201,13 +201,38 @@ def _larger(a: float, b: float) -> float:
 def _offset_box_distance(u: float, v: float) -> tuple[float, float, float]:
     """Signed distance [m] of a point (u, v) from the quadrant u, v <= 0 (the corner a box's
     or an extrusion's exact SDF reduces to) and its unit gradient (g_u, g_v): radial from
-    the corner outside, else the nearer wall. Shared by both SDF kernels below."""
+    the corner outside, else the nearer wall. Shared by the SDF kernels below."""
     ou = _larger(u, 0.0)
     ov = _larger(v, 0.0)
     outer = math.hypot(ou, ov)
     if outer > 0.0:
         return outer, ou / outer, ov / outer
     return _larger(u, v), 1.0 if u >= v else 0.0, 1.0 if u < v else 0.0
+
+
+@nb.njit(cache=True, inline="always")
+def _extruded_offset_point(
+    d2: float, g2x: float, g2z: float, y_rel: float, half_height: float, radius: float
+) -> tuple[float, float, float, float]:
+    """One point of :func:`_extruded_offset_sdf`: (distance, normal x, y, z)."""
+    # In (w_x, w_y): the profile's distance and the distance past the extrusion's ends.
+    corner, gx, gy = _offset_box_distance(d2, abs(y_rel) - half_height)
+    sy = 1.0 if y_rel >= 0.0 else -1.0
+    return corner - radius, gx * g2x, gy * sy, gx * g2z
+
+
+@nb.njit(cache=True, inline="always")
+def _rounded_rectangle_point(
+    x: float, z: float, half_x: float, half_z: float, corner_radius: float
+) -> tuple[float, float, float]:
+    """Exact 2D SDF [m] and unit gradient (g_x, g_z) at (x, z) [m] of a rounded rectangle
+    centred at 0 (half sizes and corner radius [m])."""
+    sx = 1.0 if x >= 0.0 else -1.0
+    sz = 1.0 if z >= 0.0 else -1.0
+    corner, gx, gz = _offset_box_distance(
+        abs(x) - (half_x - corner_radius), abs(z) - (half_z - corner_radius)
+    )
+    return corner - corner_radius, gx * sx, gz * sz
 
 
 @nb.njit(cache=True)
@@ -234,33 +259,31 @@ def _extruded_offset_sdf(d2, g2, y_rel, half_height, radius):  # pragma: no cove
     distance = np.empty(count)
     normal = np.empty((count, 3))
     for i in range(count):
-        # In (w_x, w_y): the profile's distance and the distance past the extrusion's ends.
-        corner, gx, gy = _offset_box_distance(d2[i], abs(y_rel[i]) - half_height)
-        distance[i] = corner - radius
-        sy = 1.0 if y_rel[i] >= 0.0 else -1.0
-        normal[i, 0] = gx * g2[i, 0]
-        normal[i, 1] = gy * sy
-        normal[i, 2] = gx * g2[i, 1]
+        distance[i], normal[i, 0], normal[i, 1], normal[i, 2] = _extruded_offset_point(
+            d2[i], g2[i, 0], g2[i, 1], y_rel[i], half_height, radius
+        )
     return distance, normal
 
 
 @nb.njit(cache=True)
-def _rounded_rectangle_sdf(x, z, half_x, half_z, corner_radius):  # pragma: no cover - compiled
-    """Exact 2D SDF [m] and unit gradient (n, 2) of a rounded rectangle centred at 0, for
-    points (x, z) [m], shapes (n,) (compiled, as :func:`_extruded_offset_sdf`)."""
-    count = x.shape[0]
-    d2 = np.empty(count)
-    gradient = np.empty((count, 2))
+def _rounded_slab_sdf(
+    points, half_x, half_z, corner_radius, mid_offset, half_height, radius
+):  # pragma: no cover - compiled
+    """:func:`_extruded_offset_sdf` of a rounded rectangle's SDF, in one pass over
+    ``points`` (n, 3) [m]: y relative to the mid-plane is y + ``mid_offset``. One compiled
+    call instead of two, and no column copies: PBD calls it every substep (at 4,126 tets
+    about 50 points a call)."""
+    count = points.shape[0]
+    distance = np.empty(count)
+    normal = np.empty((count, 3))
     for i in range(count):
-        sx = 1.0 if x[i] >= 0.0 else -1.0
-        sz = 1.0 if z[i] >= 0.0 else -1.0
-        corner, gx, gz = _offset_box_distance(
-            abs(x[i]) - (half_x - corner_radius), abs(z[i]) - (half_z - corner_radius)
+        d2, g2x, g2z = _rounded_rectangle_point(
+            points[i, 0], points[i, 2], half_x, half_z, corner_radius
         )
-        d2[i] = corner - corner_radius
-        gradient[i, 0] = gx * sx
-        gradient[i, 1] = gz * sz
-    return d2, gradient
+        distance[i], normal[i, 0], normal[i, 1], normal[i, 2] = _extruded_offset_point(
+            d2, g2x, g2z, points[i, 1] + mid_offset, half_height, radius
+        )
+    return distance, normal
 
 
 def _oriented_hull(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
@@ -332,9 +355,8 @@ class _RoundedSlab(ProbeShape):
         p = _as_points(points)
         hx, hy, hz = self._half
         r = self.edge_radius_m
-        d2, g2 = _rounded_rectangle_sdf(p[:, 0], p[:, 2], hx - r, hz - r, self.corner_radius_m - r)
         # The body's mid-plane is at y = -hy, so the face (top) lies at y = 0.
-        return _extruded_offset_sdf(d2, g2, p[:, 1] + hy, hy - r, r)
+        return _rounded_slab_sdf(p, hx - r, hz - r, self.corner_radius_m - r, hy, hy - r, r)
 
     def surface(self) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         if self._surface is None:
