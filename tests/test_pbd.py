@@ -471,6 +471,54 @@ def test_two_domain_sweep_is_the_serial_sweep_in_its_order() -> None:
         np.testing.assert_array_equal(parallel, serial)
 
 
+def test_contact_zone_sweeps_are_the_calls_they_fuse() -> None:
+    """One compiled call for a substep's contacts and contact-zone sweeps gives the bits of
+    the calls it replaced: the contacts, the zone, then (zone sweep, contacts) x 3."""
+    mesh = breast_phantom(1363)
+    model = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_mode("robust"))
+    top = mesh.nodes[:, 2].max()
+    centre = 0.5 * (mesh.nodes.min(axis=0) + mesh.nodes.max(axis=0))
+    probe = Probe.looking_along(PROBE_SHAPE, (centre[0], centre[1], top - 0.002), (0, 0, -1))
+    x0 = mesh.nodes[model._node_order]
+    shape = PROBE_SHAPE
+    bounds = shape.local_bounds_m()
+    margin = model.config.contact_margin_m
+    broad_phase = (shape.bounding_radius_m + margin, bounds[0] - margin, bounds[1] + margin)
+    scratch = (np.empty(model._point_nodes.shape[0], dtype=np.int64),
+               np.empty((model._point_nodes.shape[0], 3)))  # fmt: skip
+    points, normals, anchors = model._detect(
+        x0, probe.position_world, probe.rotation_world(), shape, broad_phase, *scratch
+    )
+    assert points.size > 10  # the probe is 2 mm into the surface
+    results = []
+    for fused in (False, True):
+        x = x0.copy()
+        support = np.zeros_like(x)
+        lam_dev, lam_hyd = np.zeros(mesh.tet_count), np.zeros(mesh.tet_count)
+        lam = np.zeros(points.size)
+        tissue = (x, model._inv_mass, model._tets, model._dm_inv, model._alpha_dev,
+                  model._alpha_hyd, model._gamma, lam_dev, lam_hyd, support)  # fmt: skip
+        contact = (model._step_point_nodes, model._point_weights, points, normals, anchors,
+                   model._contact_alpha, lam)  # fmt: skip
+        if fused:
+            pbd._contact_zone_sweeps(
+                *tissue, *contact, model._node_tet_start, model._node_tets, model._all_tets, 3
+            )
+        else:
+            pbd._project_contacts(x, model._inv_mass, *contact)
+            zone = pbd._contact_zone(
+                model._step_point_nodes, model._point_weights, points, model._node_tet_start,
+                model._node_tets, model._all_tets,
+            )  # fmt: skip
+            for _ in range(3):
+                pbd._project_tets(*tissue, zone)
+                pbd._project_contacts(x, model._inv_mass, *contact)
+        results.append((x, lam_dev, lam_hyd, support, lam))
+    assert not np.array_equal(results[0][0], x0) and np.any(results[0][4] > 0.0)
+    for explicit, fused_result in zip(*results, strict=True):
+        np.testing.assert_array_equal(fused_result, explicit)
+
+
 def test_parallel_floor_screen_counts_the_tets_below_the_floor() -> None:
     mesh = breast_phantom(1363)
     model = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_mode("robust"))
