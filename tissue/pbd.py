@@ -205,7 +205,7 @@ computed at once per step (bit for bit the same), three more alternating runs on
 machine: 22.7 / 23.4 / 24.3 -> 19.3 / 19.5 / 19.8 ms at 4,141 tets, 94.0-95.8 -> 80.6-84.0 ms
 at 26,854; and with the face's SDF in one pass, three more on a busier machine still: 26.1 /
 27.3 / 22.9 -> 20.8 / 21.1 / 20.4 ms at 4,141 tets. So at issue 5's 20 ms line at 4,141
-tets: under it in six runs of ten, 17-23 % faster than before in every pair.
+tets: under it in six runs of ten, 11-23 % faster than before in every pair.
 
 Damping: the robust configuration damps velocities at :data:`ROBUST_DAMPING_PER_S` = 30/s
 (the paper configuration keeps 2/s). At 2/s the tissue rang after the sudden release (1,363
