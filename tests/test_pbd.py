@@ -446,6 +446,67 @@ def test_two_domain_order_splits_the_tets_into_node_disjoint_domains(level: int)
     assert bounds.tolist() == [0] + [mesh.tet_count] * 3
 
 
+def _reference_sweep(x, inv_mass, tets, dm_inv, alpha_dev, alpha_hyd, gamma, lam_dev, lam_hyd,
+                     support, tet_ids) -> None:  # fmt: skip
+    """One Gauss-Seidel sweep of the coupled constraint pair C_D = |F|, C_H = det F - gamma
+    (XPBD, Macklin et al. 2020), written with numpy's matrix operations, in place."""
+    for t in tet_ids:
+        nodes = tets[t]
+        deformation = (x[nodes[1:]] - x[nodes[0]]).T @ dm_inv[t]  # F = Ds Dm^-1
+        columns = deformation.T
+        cofactor = np.stack(
+            [np.cross(columns[1], columns[2]), np.cross(columns[2], columns[0]),
+             np.cross(columns[0], columns[1])], axis=1,
+        )  # fmt: skip
+        norm = np.linalg.norm(deformation)
+        gradients = []
+        for d_dF in (deformation / norm, cofactor):
+            rows = dm_inv[t] @ d_dF.T  # node j + 1: (dC/dF) Dm^-T column j
+            gradients.append(np.vstack([-rows.sum(axis=0), rows]))
+        g, h = gradients
+        w = inv_mass[nodes][:, None]
+        system = np.array(
+            [[np.sum(w * g * g) + alpha_dev[t], np.sum(w * g * h)],
+             [np.sum(w * g * h), np.sum(w * h * h) + alpha_hyd[t]]]
+        )  # fmt: skip
+        rhs = np.array(
+            [-norm - alpha_dev[t] * lam_dev[t],
+             -(np.linalg.det(deformation) - gamma[t]) - alpha_hyd[t] * lam_hyd[t]]
+        )  # fmt: skip
+        d_dev, d_hyd = np.linalg.solve(system, rhs)
+        lam_dev[t] += d_dev
+        lam_hyd[t] += d_hyd
+        step = g * d_dev + h * d_hyd
+        fixed = inv_mass[nodes] == 0.0
+        x[nodes[~fixed]] += w[~fixed] * step[~fixed]
+        support[nodes[fixed]] += step[fixed]
+
+
+def test_tet_sweep_is_the_constraint_projection_written_with_numpy() -> None:
+    """The compiled sweep (written out in scalars) against the same projection in numpy's
+    matrix form, over every tet of a deformed phantom with its fixed base and multipliers
+    already accumulated (so that every term of the update acts)."""
+    mesh = breast_phantom(1363)
+    model = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_mode("robust"))
+    rng = np.random.default_rng(11)
+    x0 = mesh.nodes[model._node_order] + rng.normal(scale=5e-4, size=(mesh.node_count, 3))
+    lam0 = rng.normal(scale=1e-9, size=(2, mesh.tet_count))
+    assert np.any(model._inv_mass == 0.0)  # the fixed base's share goes to support
+    results = []
+    for sweep in (pbd._project_tets, _reference_sweep):
+        x, support = x0.copy(), np.zeros_like(x0)
+        lam_dev, lam_hyd = lam0[0].copy(), lam0[1].copy()
+        arrays = (model._inv_mass, model._tets, model._dm_inv, model._alpha_dev,
+                  model._alpha_hyd, model._gamma)  # fmt: skip
+        sweep(x, *arrays, lam_dev, lam_hyd, support, model._all_tets)
+        results.append((x, lam_dev, lam_hyd, support))
+    compiled, reference = results
+    assert np.abs(compiled[0] - x0).max() > 1e-5  # the sweep moved the nodes
+    assert np.abs(compiled[3]).max() > 0.0
+    for got, want in zip(compiled, reference, strict=True):
+        np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-12 * np.abs(want).max())
+
+
 def test_two_domain_sweep_is_the_serial_sweep_in_its_order() -> None:
     """The two threads' sweep gives the one-thread sweep's bits (on a machine with one
     core the check still runs, both sides on one thread)."""

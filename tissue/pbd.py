@@ -50,6 +50,11 @@ sweeps over all constraints (multipliers reset to zero at each substep), and v =
   faster (226 -> 204 us at 4,126 tets). Over 60 steps of the apex press at 4,126 and 26,220
   tets, in both configurations, the forces stay within 6e-13 of the largest and the lesions
   within 6e-13 m of the strict IEEE order's, and the same steps end ``ok`` or ``inverted``.
+  The kernel is written out in scalars (no scratch arrays, no helpers taking arrays): 211-223
+  -> 172-180 us a sweep at 4,126 tets, 1,450-1,480 -> 1,175-1,220 us at 26,220 (300 sweeps
+  on a captured state, median of five, three runs), within 5e-16 m of the array form after
+  300 sweeps; over the same 60 steps forces within 6e-13 N and lesions within 3e-13 m of it,
+  the same statuses. A test holds it to the projection written with numpy's matrix operations.
   The paper configuration keeps mesh order because at 10 substeps the order moves the result
   (4,126 tets, 40 steps of ``bench contact``'s apex press: 0.729 N in mesh order, 0.900 N in
   two-domain order) and its calibration was fitted in mesh order; at 60 substeps (robust) the
@@ -183,7 +188,8 @@ The sweeps' own kernel is two thirds of it at 4,141 tets and four fifths at 26,8
 which took the robust step from 37.4-37.8 to those 21.3-21.6 ms at 4,141 tets, 159-162 to
 125-129 ms at 26,854 and 989 to 936 ms at 173,229, bit for bit the same trajectories. A
 scalar rewrite of the sweep kernel (no scratch arrays) gained 9 % a sweep (1.58 -> 1.44 ms
-at 26,854 tets, the same bits) and was left out. The two-domain sweep (``sweep_domains`` = 2,
+at 26,854 tets, the same bits) and was left out then (it came back later, below). The
+two-domain sweep (``sweep_domains`` = 2,
 see Solver above) and the volume floor's two-thread screen from 100,000 tets then took the
 robust step (``probegym bench contact --methods pbd --modes robust``, two alternating runs each
 of the code before and after, a busier machine) from 127.6 / 129.1 to 96.1 / 94.9 ms at
@@ -205,8 +211,12 @@ each of the code before and after; the same forces to 1e-4 N, the same step stat
 computed at once per step (bit for bit the same), three more alternating runs on a busier
 machine: 22.7 / 23.4 / 24.3 -> 19.3 / 19.5 / 19.8 ms at 4,141 tets, 94.0-95.8 -> 80.6-84.0 ms
 at 26,854; and with the face's SDF in one pass, three more on a busier machine still: 26.1 /
-27.3 / 22.9 -> 20.8 / 21.1 / 20.4 ms at 4,141 tets. So at issue 5's 20 ms line at 4,141
-tets: under it in six runs of ten, 11-23 % faster than before in every pair.
+27.3 / 22.9 -> 20.8 / 21.1 / 20.4 ms at 4,141 tets: at issue 5's 20 ms line, under it in
+six runs of ten. With the sweep kernel written out in scalars (Solver, above), three more
+alternating runs (``--levels 623,4126,26220 --methods pbd``): robust 21.2 / 20.2 / 21.4 ->
+17.2 / 18.3 / 17.7 ms at 4,141 tets, 83.4 / 83.9 / 84.8 -> 76.2 / 76.2 / 74.8 ms at 26,854,
+5.6-6.2 -> 5.0-5.2 ms at 571; paper 3.2-3.3 -> 2.6-2.8 ms at 4,141 and 17.8-19.0 -> 15.0-16.0
+ms at 26,854; the same forces to 1e-12 N. Under the 20 ms target at 4,141 tets in every run.
 
 Damping: the robust configuration damps velocities at :data:`ROBUST_DAMPING_PER_S` = 30/s
 (the paper configuration keeps 2/s). At 2/s the tissue rang after the sudden release (1,363
@@ -566,32 +576,81 @@ def _project_tets(
             divided by h^2 it is the elastic force on the fixed nodes.
         tet_ids: the tets to project, in this order (all of them, or the contact zone's).
     """
-    # Scratch buffers allocated once: an allocation per tet would cost as much as the maths.
-    g = np.empty((4, 3))
-    gh = np.empty((4, 3))
-    f = np.empty((3, 3))
-    cof = np.empty((3, 3))
+    # Written out in scalars, which stay in registers: the same sweep with (4, 3) scratch
+    # arrays and the helpers _deformation / _node_gradients / _apply took 211-223 against
+    # 172-180 us at 4,126 tets (see the module docstring, Solver).
     for t in tet_ids:
-        det = _deformation(x, tets, dm_inv, t, f, cof)
-        norm = 0.0
-        for a in range(3):
-            for b in range(3):
-                norm += f[a, b] * f[a, b]
-        norm = math.sqrt(norm)
+        i0, i1, i2, i3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+        d00, d01, d02 = dm_inv[t, 0, 0], dm_inv[t, 0, 1], dm_inv[t, 0, 2]
+        d10, d11, d12 = dm_inv[t, 1, 0], dm_inv[t, 1, 1], dm_inv[t, 1, 2]
+        d20, d21, d22 = dm_inv[t, 2, 0], dm_inv[t, 2, 1], dm_inv[t, 2, 2]
+        # F = Ds Dm^-1, row by row (Ds's columns are the edges from node 0).
+        e1, e2, e3 = x[i1, 0] - x[i0, 0], x[i2, 0] - x[i0, 0], x[i3, 0] - x[i0, 0]
+        f00 = e1 * d00 + e2 * d10 + e3 * d20
+        f01 = e1 * d01 + e2 * d11 + e3 * d21
+        f02 = e1 * d02 + e2 * d12 + e3 * d22
+        e1, e2, e3 = x[i1, 1] - x[i0, 1], x[i2, 1] - x[i0, 1], x[i3, 1] - x[i0, 1]
+        f10 = e1 * d00 + e2 * d10 + e3 * d20
+        f11 = e1 * d01 + e2 * d11 + e3 * d21
+        f12 = e1 * d02 + e2 * d12 + e3 * d22
+        e1, e2, e3 = x[i1, 2] - x[i0, 2], x[i2, 2] - x[i0, 2], x[i3, 2] - x[i0, 2]
+        f20 = e1 * d00 + e2 * d10 + e3 * d20
+        f21 = e1 * d01 + e2 * d11 + e3 * d21
+        f22 = e1 * d02 + e2 * d12 + e3 * d22
+        # The cofactor d det F / dF: column b is the cross product of F's other two columns.
+        c00, c10, c20 = f11 * f22 - f21 * f12, f21 * f02 - f01 * f22, f01 * f12 - f11 * f02
+        c01, c11, c21 = f12 * f20 - f22 * f10, f22 * f00 - f02 * f20, f02 * f10 - f12 * f00
+        c02, c12, c22 = f10 * f21 - f20 * f11, f20 * f01 - f00 * f21, f00 * f11 - f10 * f01
+        det = f00 * c00 + f10 * c10 + f20 * c20
+        norm = math.sqrt(
+            f00 * f00 + f01 * f01 + f02 * f02
+            + f10 * f10 + f11 * f11 + f12 * f12
+            + f20 * f20 + f21 * f21 + f22 * f22
+        )  # fmt: skip
         has_dev = norm > _MIN_DEVIATORIC_NORM
-        _node_gradients(f, dm_inv, t, 1.0 / norm if has_dev else 0.0, g)
-        _node_gradients(cof, dm_inv, t, 1.0, gh)
-        k_dd = 0.0
-        k_dh = 0.0
-        k_hh = 0.0
-        for local in range(4):
-            w = inv_mass[tets[t, local]]
-            if w == 0.0:
-                continue
-            for a in range(3):
-                k_dd += w * g[local, a] * g[local, a]
-                k_dh += w * g[local, a] * gh[local, a]
-                k_hh += w * gh[local, a] * gh[local, a]
+        scale = 1.0 / norm if has_dev else 0.0
+        # Node gradients of C_D = |F| (g) and C_H = det F (h): node j = 1..3 is (dC/dF) Dm^-T
+        # column j, node 0 minus their sum.
+        g1x = (f00 * d00 + f01 * d01 + f02 * d02) * scale
+        g1y = (f10 * d00 + f11 * d01 + f12 * d02) * scale
+        g1z = (f20 * d00 + f21 * d01 + f22 * d02) * scale
+        g2x = (f00 * d10 + f01 * d11 + f02 * d12) * scale
+        g2y = (f10 * d10 + f11 * d11 + f12 * d12) * scale
+        g2z = (f20 * d10 + f21 * d11 + f22 * d12) * scale
+        g3x = (f00 * d20 + f01 * d21 + f02 * d22) * scale
+        g3y = (f10 * d20 + f11 * d21 + f12 * d22) * scale
+        g3z = (f20 * d20 + f21 * d21 + f22 * d22) * scale
+        g0x, g0y, g0z = -(g1x + g2x + g3x), -(g1y + g2y + g3y), -(g1z + g2z + g3z)
+        h1x = c00 * d00 + c01 * d01 + c02 * d02
+        h1y = c10 * d00 + c11 * d01 + c12 * d02
+        h1z = c20 * d00 + c21 * d01 + c22 * d02
+        h2x = c00 * d10 + c01 * d11 + c02 * d12
+        h2y = c10 * d10 + c11 * d11 + c12 * d12
+        h2z = c20 * d10 + c21 * d11 + c22 * d12
+        h3x = c00 * d20 + c01 * d21 + c02 * d22
+        h3y = c10 * d20 + c11 * d21 + c12 * d22
+        h3z = c20 * d20 + c21 * d21 + c22 * d22
+        h0x, h0y, h0z = -(h1x + h2x + h3x), -(h1y + h2y + h3y), -(h1z + h2z + h3z)
+        # The 2 x 2 system's entries grad C_i M^-1 grad C_j (a fixed node has w = 0).
+        w0, w1, w2, w3 = inv_mass[i0], inv_mass[i1], inv_mass[i2], inv_mass[i3]
+        k_dd = (
+            w0 * (g0x * g0x + g0y * g0y + g0z * g0z)
+            + w1 * (g1x * g1x + g1y * g1y + g1z * g1z)
+            + w2 * (g2x * g2x + g2y * g2y + g2z * g2z)
+            + w3 * (g3x * g3x + g3y * g3y + g3z * g3z)
+        )
+        k_dh = (
+            w0 * (g0x * h0x + g0y * h0y + g0z * h0z)
+            + w1 * (g1x * h1x + g1y * h1y + g1z * h1z)
+            + w2 * (g2x * h2x + g2y * h2y + g2z * h2z)
+            + w3 * (g3x * h3x + g3y * h3y + g3z * h3z)
+        )
+        k_hh = (
+            w0 * (h0x * h0x + h0y * h0y + h0z * h0z)
+            + w1 * (h1x * h1x + h1y * h1y + h1z * h1z)
+            + w2 * (h2x * h2x + h2y * h2y + h2z * h2z)
+            + w3 * (h3x * h3x + h3y * h3y + h3z * h3z)
+        )
         a_dd = k_dd + alpha_dev[t]
         a_hh = k_hh + alpha_hyd[t]
         rhs_h = -(det - gamma[t]) - alpha_hyd[t] * lam_hyd[t]
@@ -609,7 +668,41 @@ def _project_tets(
             d_hyd = rhs_h / a_hh
         lam_dev[t] += d_dev
         lam_hyd[t] += d_hyd
-        _apply(x, inv_mass, tets, t, g, d_dev, gh, d_hyd, support)
+        # Move each free node by w (g d_dev + h d_hyd); a fixed node's share goes to support.
+        # (Written out: the same lines in an inlined helper taking x and support made the
+        # whole sweep 2.4-2.7 x slower, the same bits.)
+        if w0 == 0.0:
+            support[i0, 0] += g0x * d_dev + h0x * d_hyd
+            support[i0, 1] += g0y * d_dev + h0y * d_hyd
+            support[i0, 2] += g0z * d_dev + h0z * d_hyd
+        else:
+            x[i0, 0] += w0 * (g0x * d_dev + h0x * d_hyd)
+            x[i0, 1] += w0 * (g0y * d_dev + h0y * d_hyd)
+            x[i0, 2] += w0 * (g0z * d_dev + h0z * d_hyd)
+        if w1 == 0.0:
+            support[i1, 0] += g1x * d_dev + h1x * d_hyd
+            support[i1, 1] += g1y * d_dev + h1y * d_hyd
+            support[i1, 2] += g1z * d_dev + h1z * d_hyd
+        else:
+            x[i1, 0] += w1 * (g1x * d_dev + h1x * d_hyd)
+            x[i1, 1] += w1 * (g1y * d_dev + h1y * d_hyd)
+            x[i1, 2] += w1 * (g1z * d_dev + h1z * d_hyd)
+        if w2 == 0.0:
+            support[i2, 0] += g2x * d_dev + h2x * d_hyd
+            support[i2, 1] += g2y * d_dev + h2y * d_hyd
+            support[i2, 2] += g2z * d_dev + h2z * d_hyd
+        else:
+            x[i2, 0] += w2 * (g2x * d_dev + h2x * d_hyd)
+            x[i2, 1] += w2 * (g2y * d_dev + h2y * d_hyd)
+            x[i2, 2] += w2 * (g2z * d_dev + h2z * d_hyd)
+        if w3 == 0.0:
+            support[i3, 0] += g3x * d_dev + h3x * d_hyd
+            support[i3, 1] += g3y * d_dev + h3y * d_hyd
+            support[i3, 2] += g3z * d_dev + h3z * d_hyd
+        else:
+            x[i3, 0] += w3 * (g3x * d_dev + h3x * d_hyd)
+            x[i3, 1] += w3 * (g3y * d_dev + h3y * d_hyd)
+            x[i3, 2] += w3 * (g3z * d_dev + h3z * d_hyd)
 
 
 @nb.njit(parallel=True, cache=True, fastmath=False)
