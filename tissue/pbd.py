@@ -232,9 +232,10 @@ the scales were kept); the holds settle sooner (that run: 200 steps against 354)
 Measured with it (``probegym hard-cases --methods pbd --config robust --level 1363`` and
 ``--level 4126``): every case passes at 1,363 tets, and at 4,126 all but the sliding: there
 lesion 1, dragged 9 mm sideways under the sliding probe, snaps back as the probe's edge
-passes over it, 3.45 mm in one step. The FE snaps there too (LM: 8.7 -> 3.5 mm over 16
-steps, at most 0.78 mm in a step), slowed by its stiffness damping; mass damping does not
-slow a snap like that (100/s: still 2.19 mm in one step). Nor does the FE's own stiffness
+passes over it: 3.45 mm in one step when first measured, 2.12 and then 3.12 mm in two steps
+on the code of 2026-11-26 (2.12 mm already fails the check). The FE snaps there too (LM: 8.7
+-> 3.5 mm over 16 steps, at most 0.78 mm in a step), slowed by its stiffness damping; mass
+damping does not slow a snap like that (100/s: still 2.19 mm in one step). Nor does the FE's own stiffness
 damping, tried as a velocity pass after each substep, (M + h r_K K_rest) v' = M v with the
 FE's r_K = 0.1 s and rest stiffness (which leaves the projection, and so the calibrated
 stiffness, alone; the constraint damping above did not): one Gauss-Seidel sweep of it a
