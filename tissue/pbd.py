@@ -235,9 +235,9 @@ lesion 1, dragged 9 mm sideways under the sliding probe, snaps back as the probe
 passes over it: 3.45 mm in one step when first measured, 2.12 and then 3.12 mm in two steps
 on the code of 2026-11-26 (2.12 mm already fails the check). The FE snaps there too (LM: 8.7
 -> 3.5 mm over 16 steps, at most 0.78 mm in a step), slowed by its stiffness damping; mass
-damping does not slow a snap like that (100/s: still 2.19 mm in one step). Nor does the FE's own stiffness
-damping, tried as a velocity pass after each substep, (M + h r_K K_rest) v' = M v with the
-FE's r_K = 0.1 s and rest stiffness (which leaves the projection, and so the calibrated
+damping does not slow a snap like that (100/s: still 2.19 mm in one step). Nor does the FE's
+own stiffness damping, tried as a velocity pass after each substep, (M + h r_K K_rest) v' =
+M v with the FE's r_K = 0.1 s and rest stiffness (which leaves the projection, and so the calibrated
 stiffness, alone; the constraint damping above did not): one Gauss-Seidel sweep of it a
 substep gave 1.89 mm (median step 49.6 against 45.6 ms), three 1.66 mm (63 ms), ten passed
 (102 ms), and the exact solve (a factorisation kept for the run) 1.23 mm at step 161 against
