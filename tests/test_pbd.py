@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 from dataclasses import replace
 
 import numpy as np
@@ -505,6 +508,50 @@ def test_tet_sweep_is_the_constraint_projection_written_with_numpy() -> None:
     assert np.abs(compiled[3]).max() > 0.0
     for got, want in zip(compiled, reference, strict=True):
         np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-12 * np.abs(want).max())
+
+
+# Builds a robust PBD model of the block in a fresh interpreter, then presses it: how many
+# specialisations each compiled kernel of tissue.pbd holds after building and after stepping.
+_KERNEL_SIGNATURES_SCRIPT = """
+import json
+import numpy as np
+import tissue.pbd as pbd
+from tissue.block import block_mesh
+from tissue.probe import BoxProbe, Probe
+
+def signatures():
+    return {name: len(kernel.signatures) for name, kernel in vars(pbd).items()
+            if hasattr(kernel, "signatures")}
+
+mesh = block_mesh((0.04, 0.04, 0.02), (8, 8, 4))
+shape = BoxProbe((0.016, 0.01, 0.016))
+model = pbd.PBDContact(mesh, shape, config=pbd.PBDConfig.for_mode("robust"))
+built = signatures()
+top, centre = mesh.nodes[:, 2].max(), mesh.nodes.mean(axis=0)
+for step in range(1, 11):
+    probe = Probe.looking_along(shape, (centre[0], centre[1], top - 2e-4 * step), (0, 0, -1))
+    result = model.step(probe.position_world, probe.quat_wxyz)
+print(json.dumps({"built": built, "stepped": signatures(),
+                  "contacts": int(result.diagnostics["active_contacts_max"])}))
+"""
+
+
+def test_building_the_model_loads_every_kernel_a_step_calls() -> None:
+    """The model's construction calls each compiled kernel of a step with the step's own
+    argument types (``PBDContact._load_kernels``): in a fresh interpreter a step in contact
+    then compiles or loads no further specialisation."""
+    run = subprocess.run(
+        [sys.executable, "-c", _KERNEL_SIGNATURES_SCRIPT], capture_output=True, text=True
+    )
+    assert run.returncode == 0, run.stderr
+    counts = json.loads(run.stdout.strip().splitlines()[-1])
+    assert counts["contacts"] > 0  # the contact kernels ran with contacts
+    assert counts["stepped"] == counts["built"]
+    step_kernels = {
+        "_start_substep", "_points_near", "_project_tets", "_contact_zone_sweeps",
+        "_enforce_volume_floor", "_end_substep", "_min_volume_ratio",
+    }  # fmt: skip
+    assert all(counts["built"][name] == 1 for name in step_kernels)
 
 
 def test_two_domain_sweep_is_the_serial_sweep_in_its_order() -> None:
