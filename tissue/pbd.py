@@ -189,8 +189,8 @@ which took the robust step from 37.4-37.8 to those 21.3-21.6 ms at 4,141 tets, 1
 125-129 ms at 26,854 and 989 to 936 ms at 173,229, bit for bit the same trajectories. A
 scalar rewrite of the sweep kernel (no scratch arrays) gained 9 % a sweep (1.58 -> 1.44 ms
 at 26,854 tets, the same bits) and was left out then (it came back later, below). The
-two-domain sweep (``sweep_domains`` = 2,
-see Solver above) and the volume floor's two-thread screen from 100,000 tets then took the
+two-domain sweep (``sweep_domains`` = 2, see Solver above) and the volume floor's two-thread
+screen from 100,000 tets then took the
 robust step (``probegym bench contact --methods pbd --modes robust``, two alternating runs each
 of the code before and after, a busier machine) from 127.6 / 129.1 to 96.1 / 94.9 ms at
 26,854 tets, 66.1 / 65.9 to 53.9 / 53.6 ms at 12,971, and 970 to 478 ms at 173,229 (one run
@@ -237,8 +237,8 @@ on the code of 2026-11-26 (2.12 mm already fails the check). The FE snaps there 
 -> 3.5 mm over 16 steps, at most 0.78 mm in a step), slowed by its stiffness damping; mass
 damping does not slow a snap like that (100/s: still 2.19 mm in one step). Nor does the FE's
 own stiffness damping, tried as a velocity pass after each substep, (M + h r_K K_rest) v' =
-M v with the FE's r_K = 0.1 s and rest stiffness (which leaves the projection, and so the calibrated
-stiffness, alone; the constraint damping above did not): one Gauss-Seidel sweep of it a
+M v with the FE's r_K = 0.1 s and rest stiffness (which leaves the projection, and so the
+calibrated stiffness, alone; the constraint damping above did not): one Gauss-Seidel sweep of it a
 substep gave 1.89 mm (median step 49.6 against 45.6 ms), three 1.66 mm (63 ms), ten passed
 (102 ms), and the exact solve (a factorisation kept for the run) 1.23 mm at step 161 against
 the bound's 1.20 (103 ms); every sixth substep with 6 h r_K, 2.35 / 1.85 / 1.36 mm for 5 and
