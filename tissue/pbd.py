@@ -670,40 +670,23 @@ def _project_tets(
         lam_dev[t] += d_dev
         lam_hyd[t] += d_hyd
         # Move each free node by w (g d_dev + h d_hyd); a fixed node's share goes to support.
-        # (Written out: the same lines in an inlined helper taking x and support made the
-        # whole sweep 2.4-2.7 x slower, the same bits.)
-        if w0 == 0.0:
-            support[i0, 0] += g0x * d_dev + h0x * d_hyd
-            support[i0, 1] += g0y * d_dev + h0y * d_hyd
-            support[i0, 2] += g0z * d_dev + h0z * d_hyd
-        else:
-            x[i0, 0] += w0 * (g0x * d_dev + h0x * d_hyd)
-            x[i0, 1] += w0 * (g0y * d_dev + h0y * d_hyd)
-            x[i0, 2] += w0 * (g0z * d_dev + h0z * d_hyd)
-        if w1 == 0.0:
-            support[i1, 0] += g1x * d_dev + h1x * d_hyd
-            support[i1, 1] += g1y * d_dev + h1y * d_hyd
-            support[i1, 2] += g1z * d_dev + h1z * d_hyd
-        else:
-            x[i1, 0] += w1 * (g1x * d_dev + h1x * d_hyd)
-            x[i1, 1] += w1 * (g1y * d_dev + h1y * d_hyd)
-            x[i1, 2] += w1 * (g1z * d_dev + h1z * d_hyd)
-        if w2 == 0.0:
-            support[i2, 0] += g2x * d_dev + h2x * d_hyd
-            support[i2, 1] += g2y * d_dev + h2y * d_hyd
-            support[i2, 2] += g2z * d_dev + h2z * d_hyd
-        else:
-            x[i2, 0] += w2 * (g2x * d_dev + h2x * d_hyd)
-            x[i2, 1] += w2 * (g2y * d_dev + h2y * d_hyd)
-            x[i2, 2] += w2 * (g2z * d_dev + h2z * d_hyd)
-        if w3 == 0.0:
-            support[i3, 0] += g3x * d_dev + h3x * d_hyd
-            support[i3, 1] += g3y * d_dev + h3y * d_hyd
-            support[i3, 2] += g3z * d_dev + h3z * d_hyd
-        else:
-            x[i3, 0] += w3 * (g3x * d_dev + h3x * d_hyd)
-            x[i3, 1] += w3 * (g3y * d_dev + h3y * d_hyd)
-            x[i3, 2] += w3 * (g3z * d_dev + h3z * d_hyd)
+        # (A loop over tuples: as fast as the four blocks written out, the same bits; the same
+        # lines in a helper taking x and support made the whole sweep 2.4-2.7 x slower.)
+        nodes = (i0, i1, i2, i3)
+        masses = (w0, w1, w2, w3)
+        steps = (
+            (g0x * d_dev + h0x * d_hyd, g0y * d_dev + h0y * d_hyd, g0z * d_dev + h0z * d_hyd),
+            (g1x * d_dev + h1x * d_hyd, g1y * d_dev + h1y * d_hyd, g1z * d_dev + h1z * d_hyd),
+            (g2x * d_dev + h2x * d_hyd, g2y * d_dev + h2y * d_hyd, g2z * d_dev + h2z * d_hyd),
+            (g3x * d_dev + h3x * d_hyd, g3y * d_dev + h3y * d_hyd, g3z * d_dev + h3z * d_hyd),
+        )
+        for local in range(4):
+            node, w, step = nodes[local], masses[local], steps[local]
+            for a in range(3):
+                if w == 0.0:
+                    support[node, a] += step[a]
+                else:
+                    x[node, a] += w * step[a]
 
 
 @nb.njit(parallel=True, cache=True, fastmath=False)
