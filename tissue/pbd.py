@@ -1391,12 +1391,14 @@ class PBDContact(ContactModel):
     def _load_kernels(self) -> None:
         """Call every compiled kernel of a step once, on scratch arrays of the types the step
         passes, so that the one-time work of a process's first call (numba loading the
-        kernel from its cache, OpenMP starting the sweep's second thread) is done here, when
-        the model is built, as the FE methods' integrator does in ``prepare``. Without it the
-        first step took 200-310 ms against 3-77 ms for the next (4,126 and 26,220 tets, a
-        fresh process), and ``bench contact``'s slowest robust step at 6,966 tets, the first
-        level swept on two threads, was 654 ms against a median of 28. Nothing of the model's
-        state is touched."""
+        kernel from its cache, OpenMP starting the sweep's second thread; the probe shape's
+        cached bounds) is done here, when the model is built, as the FE methods' integrator
+        does in ``prepare``. Measured in fresh processes (apex press), first step against the
+        next ones: without it 198 against 2.5-2.8 ms (4,126 tets, paper configuration), 261
+        against 18 (4,126, robust) and 308 against 74-78 (26,220, robust); with it 2.9, 17
+        and 73 ms, as the steps after. ``bench contact``'s slowest robust step at 6,966 tets,
+        the first level swept on two threads, was 654 ms against a median of 28. Nothing of
+        the model's state is touched."""
         cfg = self.config
         x = self._x[self._node_order]
         v, x_previous, support_step, support = (np.zeros_like(x) for _ in range(4))
@@ -1411,6 +1413,7 @@ class PBDContact(ContactModel):
             origin, near, near_positions,
         )  # fmt: skip
         self.probe.shape.signed_distance(np.zeros((1, 3)))
+        self.probe.shape.local_bounds_m()  # cached on the shape (built from its surface)
         tissue_args = (
             x, self._inv_mass, self._tets, self._dm_inv, self._alpha_dev, self._alpha_hyd,
             self._gamma, lam_dev, lam_hyd, support_step,
