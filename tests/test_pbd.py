@@ -452,7 +452,7 @@ def test_two_domain_order_splits_the_tets_into_node_disjoint_domains(level: int)
 def _reference_sweep(x, inv_mass, tets, dm_inv, alpha_dev, alpha_hyd, gamma, lam_dev, lam_hyd,
                      support, tet_ids) -> None:  # fmt: skip
     """One Gauss-Seidel sweep of the coupled constraint pair C_D = |F|, C_H = det F - gamma
-    (XPBD, Macklin et al. 2020), written with numpy's matrix operations, in place."""
+    (XPBD; Macklin & Müller 2021), written with numpy's matrix operations, in place."""
     for t in tet_ids:
         nodes = tets[t]
         deformation = (x[nodes[1:]] - x[nodes[0]]).T @ dm_inv[t]  # F = Ds Dm^-1
