@@ -92,7 +92,7 @@ PROJECTION_SWITCH = 1e-1
 # fraction of the Newton tolerance: the new residual is, to first order, the linear one
 # (176k-tet phantom, steady compression: relative linear residual 6.3e-2 x ||rhs|| / force
 # scale 5.7e-4 = 3.6e-5 predicted, 3.6e-5 measured).
-_LINEAR_SHARE_OF_TOLERANCE = 0.5
+LINEAR_SHARE_OF_TOLERANCE = 0.5
 
 
 class IntegrationMode(Choice):
@@ -739,7 +739,7 @@ class ImplicitIntegrator:
             # Inexact Newton: solve only as accurately as the current residual deserves, and
             # never beyond what brings the residual well under the Newton tolerance.
             tolerance = min(1e-2, max(0.1 * relative, 1e-10))
-            enough = _LINEAR_SHARE_OF_TOLERANCE * cfg.newton_tolerance * max(scale, scale_floor)
+            enough = LINEAR_SHARE_OF_TOLERANCE * cfg.newton_tolerance * max(scale, scale_floor)
             try:
                 step, report = direction(y, gradient, project, tolerance, enough)
                 descends = mismatch > 0.0 or _dot(gradient, step) < 0.0

@@ -82,6 +82,7 @@ from tissue.contact.compliance import COLUMN_BATCH, KeptCompliance
 from tissue.contact.fe_model import Contacts, FEContactModel, constraint_rows, detect_contacts
 from tissue.errors import ConfigError, TissueInputError
 from tissue.integrator import (
+    LINEAR_SHARE_OF_TOLERANCE,
     PROJECTION_SWITCH,
     RESIDUAL_SCALE_FLOOR,
     IntegrationMode,
@@ -692,15 +693,24 @@ class LagrangeContact(FEContactModel):
         rows: sp.csr_matrix,
         forces: NDArray[np.float64],
         tolerance: float,
+        enough: float,
     ) -> tuple[NDArray[np.float64], SolveReport, float]:
         """The free step by a ``reuse`` solve, carrying the last ``forces`` [N] as a load, so
         that the response (whose compliance W~ is approximate) only has to find their change.
-        Returns (step, report, the norm of its right-hand side over the free dofs [N])."""
+
+        ``tolerance`` is the relative residual asked; ``enough`` [N] an absolute residual
+        over the free dofs at which the solve may stop earlier (as the integrator's
+        :meth:`~tissue.integrator.IncrementalPotential.newton_direction`). Returns (step,
+        report, the absolute residual asked [N]: what the response solves may leave too).
+        """
         loaded = system.with_load(rows.T @ forces) if forces.size else system
+        load = loaded.free_rhs_norm()
+        if load > 0.0:
+            tolerance = max(tolerance, min(enough / load, 0.5))
         step, report = self.sim.integrator.solver.solve(
             loaded, tolerance=tolerance, kind=LinearSolverKind.REUSE
         )
-        return step, report, loaded.free_rhs_norm()
+        return step, report, tolerance * load
 
     def _add_contact_tangent(
         self,
@@ -846,6 +856,14 @@ class LagrangeContact(FEContactModel):
             # With a kept factorisation the solves are inexact Newton: each to a tenth of the
             # last KKT residual, as the integrator's own Newton does.
             tolerance = min(1e-2, max(0.1 * residual, 1e-10))
+            # ... and, as there, never more accurately than what brings the KKT residual well
+            # under the Newton tolerance: the free step and the response solves each get half
+            # of the integrator's share (their residuals add). The relative tolerance alone
+            # (0.1 x the residual, of a right-hand side itself of the residual's size) asked
+            # the second iteration of a steady press for ~1e-7 of the force scale, where the
+            # chord step it takes leaves ~5e-5 anyway.
+            enough = 0.5 * LINEAR_SHARE_OF_TOLERANCE * cfg.newton_tolerance
+            enough *= max(scale, scale_floor)
             # As the integrator: projected (PSD) element tangents far from the solution, the
             # exact tangent near it (projection costs quadratic convergence), the projected
             # one again where that is not definite (W = H A^-1 H^T must be positive for PGS).
@@ -900,8 +918,8 @@ class LagrangeContact(FEContactModel):
                         refreshed = attempt > 0 or (not project and not exact_iterations)
                         if refreshed:
                             integrator.solver.refresh_kept_factorization(system)
-                        free_step, report, step_load = self._loaded_solve(
-                            system, rows, start_forces, tolerance
+                        free_step, report, accuracy = self._loaded_solve(
+                            system, rows, start_forces, tolerance, enough
                         )
                         fresh = report.factorized or refreshed
                         indefinite = report.indefinite or (
@@ -923,7 +941,7 @@ class LagrangeContact(FEContactModel):
                 offset = contacts.distance + rows @ free_step - self.params.contact_distance_m
                 if keep:
                     forces, correction, response = self._kept_response(
-                        system, rows, offset, contacts, fresh, tolerance * step_load, start_forces
+                        system, rows, offset, contacts, fresh, accuracy, start_forces
                     )
                 else:
                     forces, correction, response = self._exact_response(
