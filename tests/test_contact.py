@@ -115,6 +115,42 @@ def test_kept_response_leaves_far_free_constraints_out_of_the_lcp(
 
 
 @pytest.mark.parametrize("quasi", [True, False])
+def test_kept_solves_stop_at_the_accuracy_the_newton_tolerance_needs(
+    block, monkeypatch: pytest.MonkeyPatch, quasi: bool
+) -> None:
+    """With a kept factorisation, robust LM's free and response solves stop once their
+    residual is what the Newton tolerance needs (as the integrator's Newton's do), not only at
+    a tenth of the last residual: fewer CG iterations, the same press."""
+    import tissue.contact.lagrange as lagrange
+
+    monkeypatch.setattr(lagrange, "_KEEP_FACTORIZATION_UNKNOWNS", 0)
+    shape = SphereProbe(0.01)
+    outcomes = []
+    # No absolute floor (the relative tolerance alone), then the default one.
+    for share in (0.0, lagrange.LINEAR_SHARE_OF_TOLERANCE):
+        monkeypatch.setattr(lagrange, "LINEAR_SHARE_OF_TOLERANCE", share)
+        model = _model("lm", block, shape, mode="robust", quasi=quasi)
+        solver = model.sim.integrator.solver
+        iterations = 0
+
+        def counted(*args, solve=solver.solve, **kwargs):
+            nonlocal iterations
+            x, report = solve(*args, **kwargs)
+            iterations += report.iterations
+            return x, report
+
+        monkeypatch.setattr(solver, "solve", counted)
+        result = _press(model, shape, 0.002, 10, SIZE / 2)
+        assert result.status is StepStatus.OK, result.diagnostics
+        assert result.penetration_max_m < 1e-6
+        outcomes.append((result, model.sim.positions.copy(), iterations))
+    (tight, x_tight, tight_iterations), (floored, x_floored, floored_iterations) = outcomes
+    assert floored_iterations < tight_iterations
+    assert floored.force_world[2] == pytest.approx(tight.force_world[2], rel=1e-3)
+    assert np.abs(x_floored - x_tight).max() < 1e-3 * 0.002
+
+
+@pytest.mark.parametrize("quasi", [True, False])
 def test_robust_lagrange_reports_the_end_state_it_last_evaluated(block, quasi: bool) -> None:
     """A robust LM step takes its end's elastic energy and smallest det F from Newton's last
     evaluation, which was at the end positions: no extra element pass, and the same values,

@@ -355,10 +355,18 @@ class IncrementalPotential:
         """
         system = self.hessian_system(y_flat, -gradient, project)
         if enough > 0.0:
-            rhs_norm = system.free_rhs_norm()
-            if rhs_norm > 0.0:
-                tolerance = max(tolerance, min(enough / rhs_norm, 0.5))
+            tolerance = floored_tolerance(tolerance, enough, system.free_rhs_norm())
         return self.integrator.solver.solve(system, tolerance=tolerance)
+
+
+def floored_tolerance(tolerance: float, enough: float, rhs_norm: float) -> float:
+    """The relative residual to ask of a linear solve: ``tolerance``, loosened (to at most 0.5)
+    so that the solve may stop once its absolute residual over the free dofs reaches
+    ``enough`` [N], for a right-hand side of norm ``rhs_norm`` [N] (see
+    :data:`LINEAR_SHARE_OF_TOLERANCE`)."""
+    if enough > 0.0 and rhs_norm > 0.0:
+        return max(tolerance, min(enough / rhs_norm, 0.5))
+    return tolerance
 
 
 def _rank_one_terms(terms, positions: NDArray[np.float64]) -> RankOneTerms | None:

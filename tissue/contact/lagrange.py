@@ -87,6 +87,7 @@ from tissue.integrator import (
     RESIDUAL_SCALE_FLOOR,
     IntegrationMode,
     extrapolated_positions,
+    floored_tolerance,
 )
 from tissue.solvers import (
     ConstrainedSystem,
@@ -705,8 +706,7 @@ class LagrangeContact(FEContactModel):
         """
         loaded = system.with_load(rows.T @ forces) if forces.size else system
         load = loaded.free_rhs_norm()
-        if load > 0.0:
-            tolerance = max(tolerance, min(enough / load, 0.5))
+        tolerance = floored_tolerance(tolerance, enough, load)
         step, report = self.sim.integrator.solver.solve(
             loaded, tolerance=tolerance, kind=LinearSolverKind.REUSE
         )
