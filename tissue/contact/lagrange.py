@@ -38,7 +38,8 @@ every phantom level from 1,363 tets up) keeps a (single-precision) factorisation
 Newton iterations and steps instead:
 
 - solves with A are CG preconditioned by F (``reuse`` solves; F is refreshed when CG
-  stalls), to the inexact-Newton tolerance;
+  stalls), to the inexact-Newton tolerance, and no further than the Newton tolerance needs
+  (an absolute floor, as the integrator's Newton has);
 - W~ = H F^-1 H^T is a submatrix of entries between surface points cached for F
   (:class:`~tissue.contact.compliance.KeptCompliance`: a point costs one solve the first
   time it is seen under F, and again only once its contact normal has turned);
