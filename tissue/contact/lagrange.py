@@ -21,7 +21,10 @@ at the iterate), solves that linear complementarity problem as above, and repeat
 KKT residual (force balance on the free dofs) is below the Newton tolerance. Quasi-static
 steps complete the exact tangent near the solution with the contact's own terms (the
 probe's curvature and an augmented-Lagrangian term, :meth:`LagrangeContact._add_contact_tangent`),
-so that Newton converges quadratically where the probe's rounded rim presses.
+so that Newton converges quadratically where the probe's rounded rim presses. Dynamic steps
+with stiffness damping take the exact element tangent from their first iteration (their
+Hessian holds M / h^2 + (r_K / h) K_rest beside it), the projected one where that is not
+definite or does not reduce the residual.
 
 ``paper`` mode factorises A every step, as the paper did. W is built from batches of
 columns A^-1 H^T, never all held at once (thousands of constraints on a fine mesh would
@@ -884,12 +887,12 @@ class LagrangeContact(FEContactModel):
             # Quasi-static steps complete the exact tangent with the contact terms and, with a
             # kept factorisation, take it after _KEPT_PROJECTED_ITERATIONS: with no inertia the
             # projected tangent crawls (the study's 26,220-tet reference stalled). Dynamic
-            # steps do not: the inertia m / h^2 keeps the projected tangent close to the exact
-            # one (a press's steps converge in a few iterations), and the exact tangent's full
-            # step can leave the step's own solution for another -- on the published scene's
-            # lesion 1, pose 4 (tilted; the tissue creeps sideways under the frictionless
-            # probe) the dynamic reference with it ended on the slid equilibrium, 1.78 N and
-            # the lesion 7.5 mm away, where the cells and the reference without it hold 3.65 N.
+            # steps take the exact tangent without the contact terms, from the first iteration
+            # (``exact_first``, above): with the contact terms, a full step can leave the step's
+            # own solution for another -- on the published scene's lesion 1, pose 4 (tilted;
+            # the tissue creeps sideways under the frictionless probe) the dynamic reference
+            # with them ended on the slid equilibrium, 1.78 N and the lesion 7.5 mm away, where
+            # the cells and the reference without them hold 3.65 N.
             contact_terms = bool(cfg.quasi_static) and relax_s == 0.0
             # A static solve from a relaxed state (``exact_first_static``) is near its solution
             # or nowhere near one: exact from the start, so that a failure costs one try.
