@@ -1012,13 +1012,15 @@ class LagrangeContact(FEContactModel):
                 y, energy, gradient, scale, contacts, rows, forces, residual, penetration = before
                 break
             shortened += int(fraction < 1.0)
-            # The next iteration of a dynamic step keeps this one's matrix (a chord step): with
-            # a kept factorisation its tangent is the projected one, which Newton follows only
-            # linearly anyway, and one iteration on (the constrained dofs at their targets) the
-            # matrix has barely changed; the residual is still that of the true gradient, and
-            # a step needing a third iteration assembles afresh. Measured on the 26,220-tet
-            # apex press of ``bench contact`` (50 steps): Newton and CG iterations unchanged
-            # (1.92 and 11.9 a step), the force within 2e-7 N, one Hessian fewer a step.
+            # The next iteration of a dynamic step that fell back to the projected tangent keeps
+            # this one's matrix (a chord step; an exact tangent is assembled afresh, quadratic
+            # convergence being its point): with a kept factorisation the projected tangent
+            # is followed only linearly anyway, and one iteration on (the constrained dofs at
+            # their targets) the matrix has barely changed; the residual is still that of the
+            # true gradient, and a step needing a third iteration assembles afresh. Measured on
+            # the 26,220-tet apex press of ``bench contact`` (50 steps), when every dynamic step
+            # was projected: Newton and CG iterations unchanged (1.92 and 11.9 a step), the
+            # force within 2e-7 N, one Hessian fewer a step.
             dynamic = not cfg.quasi_static and relax_s == 0.0
             if keep and project and dynamic and fraction == 1.0 and not chord_step:
                 chord = system
