@@ -15,6 +15,7 @@ from tissue.contact.placement import first_contact_pose
 from tissue.contact.prescribed import PrescribedParams
 from tissue.errors import ConfigError, TissueInputError
 from tissue.material import NeoHookean, TissueMaterials
+from tissue.pardiso import pardiso_available
 from tissue.probe import BoxProbe, Probe, SphereProbe, linear_probe
 from tissue.simulator import SimulationConfig
 from tissue.solvers import SERIAL_STEP_UNKNOWNS
@@ -689,3 +690,72 @@ def test_lagrange_compliance_cache_matches_its_definition(
             np.testing.assert_allclose(response, np.linalg.solve(matrix, h.T @ change), rtol=1e-10)
         else:
             assert response is None
+
+
+@pytest.mark.skipif(not pardiso_available(), reason="riding along is Pardiso's multi-RHS call")
+def test_prefetched_compliance_columns_ride_along_with_the_next_solve(
+    block, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """W~ columns prefetched for the kept factorisation are solved in its next solve, beside
+    that solve's own right-hand side: one Pardiso call for both, the same W~ and the same
+    solution to round-off. With no solve to carry them, W~ solves them itself; a new
+    factorisation drops them."""
+    import tissue.contact.compliance as compliance
+    import tissue.pardiso as pardiso
+    from tissue.solvers import DirectFactorizer
+
+    model = _model("lm", block, SphereProbe(0.01))
+    sim = model.sim
+    dofs, targets = sim.constraints()
+    potential = sim.integrator.incremental_potential(
+        sim.positions, sim.velocities, 0.02, dofs, targets
+    )
+    y = potential.start()
+    _, gradient, _ = potential.evaluate(y)
+    system = potential.hessian_system(y, -gradient, project=True)
+    constrained = system.constrained
+    factorizer = DirectFactorizer()
+    factor = factorizer.factorize_preconditioner(system.matrix, False, constrained)
+    assert factor is not None
+    rng = np.random.default_rng(5)
+    points = np.sort(rng.choice(model.surface.count, 9, replace=False))
+    normals = rng.standard_normal((9, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    rhs = rng.standard_normal(constrained.size)
+    expected = compliance.KeptCompliance(model.surface).matrix(factor, points, normals, constrained)
+    alone = factor.solve(rhs)
+
+    calls = []
+    call = pardiso._pardiso_call
+
+    def counted(*args):
+        calls.append(args[4])  # the phase
+        return call(*args)
+
+    monkeypatch.setattr(pardiso, "_pardiso_call", counted)
+    cache = compliance.KeptCompliance(model.surface)
+    cache.prefetch(factor, points, normals, constrained)
+    carried = factor.solve(rhs)
+    assert calls == [33]
+    np.testing.assert_allclose(carried, alone, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(
+        cache.matrix(factor, points, normals, constrained), expected, rtol=1e-10
+    )
+    assert calls == [33]  # W~ needed no solve of its own
+    calls.clear()
+    flushed = compliance.KeptCompliance(model.surface)
+    flushed.prefetch(factor, points, normals, constrained)
+    np.testing.assert_allclose(
+        flushed.matrix(factor, points, normals, constrained), expected, rtol=1e-10
+    )
+    assert calls == [33]
+    calls.clear()
+    dropped = compliance.KeptCompliance(model.surface)
+    dropped.prefetch(factor, points[:4], normals[:4], constrained)
+    other = factorizer.factorize_preconditioner(system.matrix, False, constrained)
+    assert other is not None and other is not factor
+    calls.clear()
+    np.testing.assert_allclose(
+        dropped.matrix(other, points, normals, constrained), expected, rtol=1e-10
+    )
+    assert calls == [33]  # the new factor's own batch; the old one's riders never solved

@@ -692,6 +692,22 @@ class LagrangeContact(FEContactModel):
 
     # ------------------------------------------------------------------ robust
 
+    def _prefetch_compliance(
+        self, contacts: Contacts, forces: NDArray[np.float64], constrained: NDArray[np.bool_]
+    ) -> None:
+        """Hand the kept factorisation's next solve (the free step's first) the W~ columns the
+        response will likely need: those of the points pressing or within
+        :data:`_LAZY_GAP_M` of the probe now (the response takes those within it after the
+        free step, and solves what is missing itself)."""
+        kept = self.sim.integrator.solver.kept_factorization
+        if kept is None or not contacts.count:
+            return
+        near = (contacts.distance - self.params.contact_distance_m <= _LAZY_GAP_M) | (forces > 0.0)
+        if np.any(near):
+            self._compliance.prefetch(
+                kept, contacts.points[near], contacts.normal[near], constrained
+            )
+
     def _loaded_solve(
         self,
         system: ConstrainedSystem,
@@ -941,6 +957,7 @@ class LagrangeContact(FEContactModel):
                         )
                         if refreshed:
                             integrator.solver.refresh_kept_factorization(system)
+                        self._prefetch_compliance(contacts, start_forces, constrained)
                         free_step, report, accuracy = self._loaded_solve(
                             system, rows, start_forces, tolerance, enough
                         )
