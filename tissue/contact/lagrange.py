@@ -944,8 +944,8 @@ class LagrangeContact(FEContactModel):
                         exact_trusted = False  # not definite: projected for the rest of the step
                         if may_retry and contact_terms:
                             break
-                    chord_step = chord is not None and project
-                    if chord is not None and project:
+                    chord_step = chord is not None and (project or exact_first)
+                    if chord_step:
                         system = chord.with_rhs(-gradient)
                     else:
                         system = potential.hessian_system(y, -gradient, project=project)
@@ -1037,17 +1037,19 @@ class LagrangeContact(FEContactModel):
                 y, energy, gradient, scale, contacts, rows, forces, residual, penetration = before
                 break
             shortened += int(fraction < 1.0)
-            # The next iteration of a dynamic step that fell back to the projected tangent keeps
-            # this one's matrix (a chord step; an exact tangent is assembled afresh, quadratic
-            # convergence being its point): with a kept factorisation the projected tangent
-            # is followed only linearly anyway, and one iteration on (the constrained dofs at
-            # their targets) the matrix has barely changed; the residual is still that of the
-            # true gradient, and a step needing a third iteration assembles afresh. Measured on
-            # the 26,220-tet apex press of ``bench contact`` (50 steps), when every dynamic step
-            # was projected: Newton and CG iterations unchanged (1.92 and 11.9 a step), the
-            # force within 2e-7 N, one Hessian fewer a step.
+            # The next iteration of a dynamic step keeps this one's matrix (a chord step): one
+            # iteration on (the constrained dofs at their targets) the matrix has barely
+            # changed; the residual is still that of the true gradient, and a step needing a
+            # third iteration assembles afresh. Measured on the 26,220-tet apex press of
+            # ``bench contact`` (50 steps), when every dynamic step was projected: Newton and
+            # CG iterations unchanged (1.92 and 11.9 a step), the force within 2e-7 N, one
+            # Hessian fewer a step. With the exact tangent (one run each): at 26,220 tets the
+            # same Newton iterations (1.78 a step) and force to 8 digits, median step 51.7 /
+            # 51.4 -> 42.9 / 41.9 ms; at 4,126, 8.2 -> 7.1 ms, the same iterations and force;
+            # at 176,506, 2.06 -> 2.16 Newton iterations a step, 559 / 584 -> 530 / 536 ms, the
+            # force to 7 digits.
             dynamic = not cfg.quasi_static and relax_s == 0.0
-            if keep and project and dynamic and fraction == 1.0 and not chord_step:
+            if keep and (project or exact_first) and dynamic and fraction == 1.0 and not chord_step:
                 chord = system
             y = trial
             contacts_new = detect_contacts(
