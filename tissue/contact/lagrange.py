@@ -44,11 +44,16 @@ Newton iterations and steps instead:
   stalls), to the inexact-Newton tolerance, and no further than the Newton tolerance needs
   (an absolute floor, as the integrator's Newton has);
 - W~ = H F^-1 H^T is a submatrix of entries between surface points cached for F
-  (:class:`~tissue.contact.compliance.KeptCompliance`: a point costs one solve the first
-  time it is seen under F, and again only once its contact normal has turned);
+  (:class:`~tissue.contact.compliance.KeptCompliance`: a point costs a column F^-1 H_p^T
+  the first time it is seen under F, and again only once its contact normal has turned;
+  the columns a Newton iteration will likely need are solved beside its free step's
+  first solve, in the same Pardiso call);
 - the response is iterated to the exact W: lambda' = LCP(W~, gaps(lambda) - W~ lambda), the
   gaps evaluated with A; with F = A one round is exact, and F is refreshed when a few
-  rounds do not bring the gaps within the contact tolerance of the prediction;
+  rounds do not bring the gaps within the contact tolerance of the prediction. In the
+  Newton iterations of a dynamic step after its first, the response is taken under F
+  (F^-1 H^T dlambda from W~'s columns, no solve with A): the forces change little there,
+  and the KKT residual of the next iterate judges it;
 - the iteration starts from the last iterate's (or step's) forces, applied as a load in the
   free solve, so W~'s error acts only on their change: at 26,220 tets (apex press, 42
   steps) 1.5 rounds per Newton iteration instead of 2.1, and 3 factorisations instead of 14;
