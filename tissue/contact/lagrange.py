@@ -1107,9 +1107,11 @@ class LagrangeContact(FEContactModel):
                 # step can jump millimetres (measured: 9.6 mm for a 1 mm press); an exact
                 # step that does not reduce the KKT residual is undone, and the step is retried
                 # (``may_retry``: split or relaxed) or goes on with the projected tangent; a
-                # dynamic step goes on projected.
+                # dynamic step goes on projected (and so does not reuse this step's matrix as a
+                # chord).
                 y, energy, gradient, scale, contacts, rows, forces, residual, penetration = before
                 exact_trusted = False
+                chord = None
                 rejected += 1
                 if may_retry and contact_terms:
                     break
