@@ -565,7 +565,8 @@ class LagrangeContact(FEContactModel):
         error on their response is small, and the next KKT residual (exact gradient, gaps
         re-detected) judges the iterate anyway: a response short of A's costs an iteration,
         not accuracy.
-        Measured on the apex press (one run each): at 173,229 tets Newton iterations 2.16 ->
+        Measured on ``bench contact``'s apex press (stepped by a script reading each step's
+        diagnostics, two interleaved runs each): at 173,229 tets Newton iterations 2.16 ->
         2.19 a step, median step 545 / 556 -> 491 / 488 ms, the force within 6e-7 relative;
         at 26,854 tets 1.78 -> 1.82, 44.3 / 44.7 -> 40.9 / 41.1 ms, within 1e-7.
 
@@ -617,7 +618,6 @@ class LagrangeContact(FEContactModel):
             predicted = gaps[chosen] + compliance @ (new - current)
             delta = np.zeros_like(forces)
             delta[chosen] = new - current
-            change = system.with_rhs(rows.T @ delta)
             # Start from the change's response under F, a sum of W~'s kept columns (CG's
             # first iteration would have spent a solve with F on it). Measured on the
             # 26,220-tet apex press of ``bench contact`` (50 steps): CG iterations of the
@@ -634,6 +634,7 @@ class LagrangeContact(FEContactModel):
                 assert under_f is not None
                 increment = under_f
             else:
+                change = system.with_rhs(rows.T @ delta)
                 load = change.free_rhs_norm()
                 relative = _RESPONSE_TOLERANCE_CAP if load == 0.0 else accuracy / load
                 increment, report = solver.solve(
@@ -910,7 +911,8 @@ class LagrangeContact(FEContactModel):
         # tangent is what Newton's first iteration misses by: on the 26,220-tet apex press of
         # ``bench contact`` (50 steps) 14 steps converged in one iteration instead of 4, 1.76
         # Newton iterations a step instead of 2.00, the force within 1.1e-5 relative.
-        exact_first = not cfg.quasi_static and relax_s == 0.0 and cfg.rayleigh_stiffness > 0.0
+        dynamic = not cfg.quasi_static and relax_s == 0.0
+        exact_first = dynamic and cfg.rayleigh_stiffness > 0.0
         penetration = 0.0
         limit = self.params.max_iterations
         if relax_s > 0.0:
@@ -1074,12 +1076,13 @@ class LagrangeContact(FEContactModel):
             # third iteration assembles afresh. Measured on the 26,220-tet apex press of
             # ``bench contact`` (50 steps), when every dynamic step was projected: Newton and
             # CG iterations unchanged (1.92 and 11.9 a step), the force within 2e-7 N, one
-            # Hessian fewer a step. With the exact tangent (one run each): at 26,220 tets the
-            # same Newton iterations (1.78 a step) and force to 8 digits, median step 51.7 /
-            # 51.4 -> 42.9 / 41.9 ms; at 4,126, 8.2 -> 7.1 ms, the same iterations and force;
+            # Hessian fewer a step. With the exact tangent (the same press stepped by a script
+            # reading each step's diagnostics; two interleaved runs each, one at 4,126 tets):
+            # at 26,220 tets the same Newton iterations (1.78 a step) and force to 8 digits,
+            # median step 51.7 / 51.4 -> 42.9 / 41.9 ms; at 4,126, 8.2 -> 7.1 ms, the same
+            # iterations and force;
             # at 176,506, 2.06 -> 2.16 Newton iterations a step, 559 / 584 -> 530 / 536 ms, the
             # force to 7 digits.
-            dynamic = not cfg.quasi_static and relax_s == 0.0
             if keep and (project or exact_first) and dynamic and fraction == 1.0 and not chord_step:
                 chord = system
             y = trial
