@@ -110,6 +110,12 @@ def _build_parser() -> argparse.ArgumentParser:
         "mode, as the study's robust configuration; off in paper mode, the set fixed at "
         "first contact or the scene's own)",
     )
+    compress.add_argument(
+        "--sliding",
+        action="store_true",
+        help="prescribed, online: frictionless contact (nodes held along the probe's normal "
+        "only, free to slide on it) instead of nodes moving rigidly with the probe",
+    )
     compress.add_argument("--json", type=Path, default=Path("compress.json"))
     compress.add_argument(
         "--case",
@@ -160,7 +166,7 @@ def _build_parser() -> argparse.ArgumentParser:
 # compress options a named hard case sets itself (its path, probe, material, node set).
 _CASE_SETS = (
     "fixed_plane", "fixed_nodes", "lesion", "young", "poisson", "probe", "at", "direction",
-    "depths", "speed", "settle_steps", "online",
+    "depths", "speed", "settle_steps", "online", "sliding",
 )  # fmt: skip
 
 

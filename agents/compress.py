@@ -338,11 +338,17 @@ def build_model(
     poisson: float | None,
     online: bool,
     node_set: tuple[int, ...] | None = None,
+    sliding: bool = False,
 ) -> ContactModel:
     """The contact model for a compression, with the material overrides applied."""
     method_enum = ContactMethod.parse(method)
     if online and method_enum is not ContactMethod.PRESCRIBED:
         raise ConfigError(f"--online applies to --method prescribed only; got --method {method}")
+    if sliding and not (online and method_enum is ContactMethod.PRESCRIBED):
+        raise ConfigError(
+            "--sliding applies to --method prescribed with an online node set (--online; the "
+            f"default in robust mode); got --method {method}, online {online}"
+        )
     base = NeoHookean()
     tissue = NeoHookean(
         young_pa if young_pa is not None else base.young_pa,
@@ -356,7 +362,7 @@ def build_model(
         )
     kwargs: dict[str, Any] = {"materials": materials, "config": SimulationConfig(mode=mode)}
     if method_enum is ContactMethod.PRESCRIBED:
-        kwargs["params"] = PrescribedParams(online=online, node_set=node_set)
+        kwargs["params"] = PrescribedParams(online=online, sliding=sliding, node_set=node_set)
     return make_contact_model(method_enum, mesh, shape, **kwargs)
 
 

@@ -99,7 +99,15 @@ def run_compress_command(args: argparse.Namespace) -> int:
     # default probe keeps that face and adds the probe's body behind it (see linear_probe).
     shape: ProbeShape = parse_probe_spec(args.probe or "face")
     model = build_model(
-        mesh, shape, args.method, args.mode, args.young, args.poisson, online, given_nodes
+        mesh,
+        shape,
+        args.method,
+        args.mode,
+        args.young,
+        args.poisson,
+        online,
+        given_nodes,
+        sliding=args.sliding,
     )
     if args.scene is not None:
         if args.depths is not None or args.at is not None:
@@ -134,6 +142,7 @@ def run_compress_command(args: argparse.Namespace) -> int:
         "speed_m_s": args.speed,
         "settle_steps": settle,
         "online": online,
+        "sliding": args.sliding,
     }
     write_json(record, args.json)
     print(f"written: {args.json} ({len(record['steps'])} steps)")

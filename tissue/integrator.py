@@ -49,6 +49,7 @@ from numpy.typing import NDArray
 from tissue.choices import Choice
 from tissue.elasticity import Elasticity, ElasticState
 from tissue.errors import ConfigError
+from tissue.frames import NodeFrames
 from tissue.solvers import (
     ConstrainedSystem,
     LinearSolver,
@@ -236,12 +237,14 @@ class PaperSystem:
             (row pointer, column indices, values), one row per constrained dof (for reactions).
         rhs: the right-hand side before elimination.
         dofs: the constrained dofs.
+        frames: node frames the system is written in (None: world coordinates).
     """
 
     system: ConstrainedSystem
     constrained_rows: tuple[NDArray[np.int64], NDArray[np.int32], NDArray[np.float64]]
     rhs: NDArray[np.float64]
     dofs: NDArray[np.int64]
+    frames: NodeFrames | None = None
 
 
 class IncrementalPotential:
@@ -250,10 +253,26 @@ class IncrementalPotential:
     E(y) = |y - x - h v|^2_M / (2 h^2) + Psi(y) + sum(terms) - f_ext . y + |y - x|^2_D / (2 h),
     D = r_M M + r_K K_rest (the rest stiffness: constant, PSD, no assembly per step).
     Quasi-static: E(y) = Psi(y) + sum(terms) - f_ext . y.
+
+    With node ``frames`` the unknown is z = Q y (see :mod:`tissue.frames`): ``evaluate``,
+    ``hessian_system``, ``start``, ``dofs`` and ``targets`` are all in those coordinates.
     """
 
-    def __init__(self, integrator: ImplicitIntegrator, x0, v0, h, dofs, targets, terms) -> None:
+    def __init__(
+        self,
+        integrator: ImplicitIntegrator,
+        x0,
+        v0,
+        h,
+        dofs,
+        targets,
+        terms,
+        frames: NodeFrames | None = None,
+    ) -> None:
         cfg = integrator.config
+        if frames is not None and terms:
+            raise ConfigError("node frames and energy terms cannot be combined in one step")
+        self.frames = frames
         self.integrator = integrator
         self.h = h
         self.x0_flat = x0.reshape(-1)
@@ -277,14 +296,24 @@ class IncrementalPotential:
 
     def start(self) -> NDArray[np.float64]:
         """The first iterate: the inertial prediction x + h v (x when quasi-static)."""
-        return self.x0_flat.copy() if self.quasi else self.inertia_target.copy()
+        return self.local(self.x0_flat if self.quasi else self.inertia_target)
 
-    def evaluate(self, y_flat: NDArray[np.float64]) -> tuple[float, NDArray[np.float64], float]:
-        """(energy [J], gradient [N] (3N,), force scale [N]) at y [m] (3N,); no tangent."""
+    def local(self, y_flat: NDArray[np.float64]) -> NDArray[np.float64]:
+        """World positions [m] (3N,) in the potential's coordinates (a new array)."""
+        return y_flat.copy() if self.frames is None else self.frames.to_local(y_flat)
+
+    def world(self, z_flat: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The potential's coordinates [m] (3N,) in world ones (``z_flat`` itself if framed
+        nodes are none)."""
+        return z_flat if self.frames is None else self.frames.to_world(z_flat)
+
+    def evaluate(self, z_flat: NDArray[np.float64]) -> tuple[float, NDArray[np.float64], float]:
+        """(energy [J], gradient [N] (3N,), force scale [N]) at z [m] (3N,); no tangent."""
         cfg, h = self.integrator.config, self.h
+        y_flat = self.world(z_flat)
         y3 = y_flat.reshape(-1, 3)
         state = self.integrator.elasticity.evaluate(y3, tangent=False)
-        self.last_elastic = (y_flat, state.energy_j, state.min_volume_ratio)
+        self.last_elastic = (z_flat, state.energy_j, state.min_volume_ratio)
         energy = state.energy_j
         internal = state.forces.reshape(-1)
         for term in self.terms:
@@ -320,14 +349,16 @@ class IncrementalPotential:
             )
             energy += inertia_energy
             scale = max(scale, math.sqrt(inertial_square))
+        if self.frames is not None:
+            gradient = self.frames.to_local(gradient)
         return energy, gradient, scale
 
     def hessian_system(
-        self, y_flat: NDArray[np.float64], rhs: NDArray[np.float64], project: bool
+        self, z_flat: NDArray[np.float64], rhs: NDArray[np.float64], project: bool
     ) -> ConstrainedSystem:
-        """Hessian at y with constrained increments reaching the targets, right-hand side rhs."""
+        """Hessian at z with constrained increments reaching the targets, right-hand side rhs."""
         integrator, cfg, h, m = self.integrator, self.integrator.config, self.h, self.mass
-        y3 = y_flat.reshape(-1, 3)
+        y3 = self.world(z_flat).reshape(-1, 3)
         state = integrator.elasticity.evaluate(y3, tangent=True, project_psd=project)
         # A fresh matrix (every evaluation fills a new data array): modified in place.
         matrix = integrator._stiffness_with_terms(state, y3, self.terms)
@@ -341,8 +372,10 @@ class IncrementalPotential:
                 integrator._diagonal(matrix),
                 m / (h * h) + cfg.rayleigh_mass * m / h,
             )
-        values = np.zeros_like(y_flat)
-        values[self.dofs] = self.targets - y_flat[self.dofs]
+        if self.frames is not None:
+            self.frames.rotate_matrix(matrix)
+        values = np.zeros_like(z_flat)
+        values[self.dofs] = self.targets - z_flat[self.dofs]
         return ConstrainedSystem(
             matrix, rhs, self.constrained, values, _rank_one_terms(self.terms, y3)
         )
@@ -501,6 +534,7 @@ class ImplicitIntegrator:
         constrained_dofs: NDArray[np.int64],
         targets: NDArray[np.float64],
         terms: Sequence[EnergyTerm] = (),
+        frames: NodeFrames | None = None,
     ) -> StepOutcome:
         """Advance one step of ``dt`` [s].
 
@@ -512,10 +546,14 @@ class ImplicitIntegrator:
                 nodes included), (k,), unique.
             targets: their coordinates at the end of the step [m], (k,).
             terms: extra energy terms (penalty contact) active during the step.
+            frames: node frames; the dofs of framed nodes (3·node + local axis) and their
+                targets are then along the frames' axes (see :mod:`tissue.frames`).
         """
         start = time.perf_counter()
         if self.config.mode is IntegrationMode.PAPER:
-            outcome = self._paper_step(positions, velocities, dt, constrained_dofs, targets, terms)
+            outcome = self._paper_step(
+                positions, velocities, dt, constrained_dofs, targets, terms, frames
+            )
         else:
             outcome = self._robust_step(
                 positions,
@@ -525,6 +563,7 @@ class ImplicitIntegrator:
                 targets,
                 terms,
                 self.config.max_subdivisions,
+                frames,
             )
             self._last_step = (
                 (outcome.positions, outcome.velocities, velocities, dt)
@@ -536,21 +575,23 @@ class ImplicitIntegrator:
 
     # ------------------------------------------------------------------ paper
 
-    def _paper_step(self, x, v, h, dofs, targets, terms) -> StepOutcome:
-        linear = self.paper_system(x, v, h, dofs, targets, terms)
+    def _paper_step(self, x, v, h, dofs, targets, terms, frames=None) -> StepOutcome:
+        linear = self.paper_system(x, v, h, dofs, targets, terms, frames)
         try:
             solution, report = self.solver.solve(linear.system)
         except Exception:  # noqa: BLE001 - a failed factorisation is a step failure, not a crash
             return self._failed(x, v, StepStatus.SOLVER_FAILED)
         return self.paper_finish(x, v, h, linear, solution, report)
 
-    def paper_system(self, x, v, h, dofs, targets, terms=()) -> PaperSystem:
+    def paper_system(self, x, v, h, dofs, targets, terms=(), frames=None) -> PaperSystem:
         """The linear system of the paper's eq. (5) (or K dx = f when quasi-static).
 
         The unknown is dv [m/s] (dx [m] when quasi-static), with constrained dofs set so that
-        the step ends at ``targets``.
+        the step ends at ``targets``; with node ``frames``, all of it in their coordinates.
         """
         cfg = self.config
+        if frames is not None and terms:
+            raise ConfigError("node frames and energy terms cannot be combined in one step")
         state = self._take_end_state(x)
         if state is None:
             state = self.elasticity.evaluate(x, tangent=True, project_psd=bool(cfg.project_psd))
@@ -560,7 +601,8 @@ class ImplicitIntegrator:
         if self.external_force is not None:
             force = force + self.external_force.reshape(-1)
         v_flat = np.ascontiguousarray(v, dtype=np.float64).reshape(-1)
-        x_flat = x.reshape(-1)
+        x_flat = x.reshape(-1) if frames is None else frames.to_local(x.reshape(-1))
+        v_target = v_flat if frames is None else frames.to_local(v_flat)
         values = np.zeros(x.size)
         if cfg.quasi_static:
             rhs = force
@@ -580,7 +622,7 @@ class ImplicitIntegrator:
                 stiffness_v = elastic_v + self._term_stiffness_product(x, terms, v_flat)
             damping_force = cfg.rayleigh_mass * m * v_flat + cfg.rayleigh_stiffness * elastic_v
             rhs = h * (force - damping_force) - h * h * stiffness_v
-            values[dofs] = (targets - x_flat[dofs]) / h - v_flat[dofs]
+            values[dofs] = (targets - x_flat[dofs]) / h - v_target[dofs]
             # h^2 K + h r_K K_elastic + (1 + h r_M) M, in place.
             if matrix is elastic:
                 _scale_add_diagonal(
@@ -600,6 +642,9 @@ class ImplicitIntegrator:
                     self._diagonal(matrix),
                     (1.0 + h * cfg.rayleigh_mass) * m,
                 )
+        if frames is not None:
+            frames.rotate_matrix(matrix)
+            rhs = frames.to_local(rhs)
         # Reactions need the constrained rows as they were before elimination: keep only those
         # (a copy of the whole matrix costs tens of MB on the finest meshes).
         starts = matrix.indptr[dofs].astype(np.int64)
@@ -608,7 +653,7 @@ class ImplicitIntegrator:
         positions = np.arange(row_pointer[-1]) + np.repeat(starts - row_pointer[:-1], counts)
         rows = (row_pointer, matrix.indices[positions], matrix.data[positions].copy())
         system = ConstrainedSystem(matrix, rhs, self._dof_mask(dofs), values)
-        return PaperSystem(system, rows, rhs, dofs)
+        return PaperSystem(system, rows, rhs, dofs, frames)
 
     def paper_finish(self, x, v, h, linear: PaperSystem, solution, report) -> StepOutcome:
         """Update the state from a solution of :meth:`paper_system`; reactions included."""
@@ -619,6 +664,8 @@ class ImplicitIntegrator:
         pointer, indices, data = linear.constrained_rows
         rows = _row_products(pointer, indices, data, np.arange(dofs.size), solution)
         reaction = np.zeros(x.size)
+        if linear.frames is not None:
+            solution = linear.frames.to_world(solution)
         if self.config.quasi_static:
             new_x = x + solution.reshape(-1, 3)
             new_v = np.zeros_like(v)
@@ -627,6 +674,8 @@ class ImplicitIntegrator:
             new_v = v + solution.reshape(-1, 3)
             new_x = x + h * new_v
             reaction[dofs] = (rows - linear.rhs[dofs]) / h
+        if linear.frames is not None:
+            reaction = linear.frames.to_world(reaction)
         known = None
         if np.all(np.isfinite(new_x)):
             state = self._keep_end_state(new_x)
@@ -667,31 +716,36 @@ class ImplicitIntegrator:
 
     # ------------------------------------------------------------------ robust
 
-    def _robust_step(self, x, v, h, dofs, targets, terms, subdivisions_left) -> StepOutcome:
-        outcome = self._newton(x, v, h, dofs, targets, terms)
+    def _robust_step(
+        self, x, v, h, dofs, targets, terms, subdivisions_left, frames=None
+    ) -> StepOutcome:
+        outcome = self._newton(x, v, h, dofs, targets, terms, frames)
         if not outcome.status.is_failure or subdivisions_left == 0:
             return outcome
         # Retry as two half steps, the prescribed targets interpolated linearly.
-        start = x.reshape(-1)[dofs]
+        start = (x.reshape(-1) if frames is None else frames.to_local(x.reshape(-1)))[dofs]
         middle = start + 0.5 * (targets - start)
-        first = self._robust_step(x, v, 0.5 * h, dofs, middle, terms, subdivisions_left - 1)
+        left = subdivisions_left - 1
+        first = self._robust_step(x, v, 0.5 * h, dofs, middle, terms, left, frames)
         if first.status in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
             return outcome  # halving found nothing better: the undivided attempt stands
         second = self._robust_step(
-            first.positions, first.velocities, 0.5 * h, dofs, targets, terms, subdivisions_left - 1
+            first.positions, first.velocities, 0.5 * h, dofs, targets, terms, left, frames
         )
         merged = _merge(first, second)
         merged.subdivisions += 1
         return merged if _rank(merged) <= _rank(outcome) else outcome
 
-    def incremental_potential(self, x0, v0, h, dofs, targets, terms=()) -> IncrementalPotential:
+    def incremental_potential(
+        self, x0, v0, h, dofs, targets, terms=(), frames=None
+    ) -> IncrementalPotential:
         """The step's incremental potential (robust mode), for Newton and constrained solvers."""
-        return IncrementalPotential(self, x0, v0, h, dofs, targets, terms)
+        return IncrementalPotential(self, x0, v0, h, dofs, targets, terms, frames)
 
-    def _newton(self, x0, v0, h, dofs, targets, terms) -> StepOutcome:
+    def _newton(self, x0, v0, h, dofs, targets, terms, frames=None) -> StepOutcome:
         cfg = self.config
         quasi = cfg.quasi_static
-        potential = self.incremental_potential(x0, v0, h, dofs, targets, terms)
+        potential = self.incremental_potential(x0, v0, h, dofs, targets, terms, frames)
         free = ~potential.constrained
         evaluate, direction = potential.evaluate, potential.newton_direction
 
@@ -701,6 +755,8 @@ class ImplicitIntegrator:
         # fifty times closer to the solution in a steady compression.
         y = potential.start()
         guess = self._extrapolated_start(x0, v0, h)
+        if guess is not None:
+            guess = potential.local(guess)
         evaluated = evaluate(guess) if guess is not None else None
         if guess is not None and evaluated is not None and _finite(evaluated[0], evaluated[1]):
             y = guess
@@ -766,11 +822,12 @@ class ImplicitIntegrator:
             if found is None:
                 return self._failed(x0, v0, StepStatus.DIVERGED)
             y, energy, gradient, scale = found
-        new_x = y.reshape(-1, 3)
+        new_x = potential.world(y).reshape(-1, 3)
         new_v = np.zeros_like(v0) if quasi else (new_x - x0) / h
         # Reaction at constrained dofs: the constraint force balancing the residual there.
         reaction = np.zeros_like(y)
         reaction[dofs] = gradient[dofs]
+        reaction = potential.world(reaction)
         report = SolveReport(total_linear, worst_linear, True, factorizations > 0)
         # The last evaluation was at y (the accepted point): its energy and det F serve.
         elastic = potential.last_elastic

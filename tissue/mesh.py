@@ -270,22 +270,28 @@ def _check_mesh(mesh: TetMesh) -> None:
         )
 
 
-def check_rigid_motion_removed(mesh: TetMesh, constrained_dofs: NDArray[np.int64]) -> None:
+def check_rigid_motion_removed(
+    mesh: TetMesh,
+    constrained_dofs: NDArray[np.int64],
+    directions: NDArray[np.float64] | None = None,
+) -> None:
     """Raise MeshError unless the constrained dofs remove all six rigid motions.
 
     Quasi-static problems are singular otherwise. The rigid modes (three translations, three
     rotations about the centroid) restricted to the constrained dofs must have rank six.
+    ``directions`` (k, 3), unit: the direction each dof constrains, where not its world axis
+    (a node sliding on a plane is held along the plane's normal only).
     """
     constrained_dofs = np.asarray(constrained_dofs, dtype=np.int64)
     nodes = constrained_dofs // 3
-    axes = constrained_dofs % 3
+    if directions is None:
+        directions = np.eye(3)[constrained_dofs % 3]
     relative = mesh.nodes[nodes] - mesh.nodes.mean(axis=0)
     modes = np.zeros((constrained_dofs.size, 6))
-    modes[np.arange(constrained_dofs.size), axes] = 1.0
-    # Rotation about axis a moves point r by e_a x r; its component along `axes`.
-    for a in range(3):
-        rotation = np.cross(np.eye(3)[a], relative)
-        modes[:, 3 + a] = rotation[np.arange(constrained_dofs.size), axes]
+    # Translation t moves every point by t: its component along d is t . d; rotation w moves
+    # r by w x r, whose component along d is w . (r x d).
+    modes[:, :3] = directions
+    modes[:, 3:] = np.cross(relative, directions)
     extent = float(np.max(np.ptp(mesh.nodes, axis=0)))
     if constrained_dofs.size >= 6:
         singular = np.linalg.svd(

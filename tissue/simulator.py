@@ -26,6 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from tissue.elasticity import AntiLocking, Elasticity
 from tissue.errors import ConfigError, TissueInputError
+from tissue.frames import NodeFrames
 from tissue.integrator import (
     EnergyTerm,
     ImplicitIntegrator,
@@ -224,6 +225,7 @@ class TissueSimulator:
         self.integrator.prepare()
         self._prescribed_dofs = np.zeros(0, dtype=np.int64)
         self._prescribed_targets = np.zeros(0)
+        self._frames: NodeFrames | None = None
         self._fixed_dofs = node_dofs(mesh.fixed_nodes)
         self._checked_dofs: NDArray[np.int64] | None = None
         self.reset()
@@ -323,6 +325,44 @@ class TissueSimulator:
             raise TissueInputError(f"axes must be distinct values among 0, 1, 2; got {list(axes)}")
         self.prescribe_dofs(node_dofs(nodes, tuple(axes_array)), targets[:, axes_array].reshape(-1))
 
+    def prescribe_normal(self, nodes: ArrayLike, points: ArrayLike, normals: ArrayLike) -> None:
+        """Prescribe each node's coordinate along a normal only, replacing any earlier set.
+
+        Node i ends the next step(s) on the plane through ``points[i]`` with normal
+        ``normals[i]`` and is free to slide within it: a frictionless contact with that plane
+        (the integrator solves the step in frames whose first axis is the normal; see
+        :mod:`tissue.frames`). The reaction at such a node lies along its normal.
+
+        Args:
+            nodes: node indices, (k,), unique, none of them fixed.
+            points: a point of each plane [m], (k, 3).
+            normals: each plane's normal, (k, 3), non-zero (normalised here).
+        """
+        nodes = np.asarray(nodes, dtype=np.int64).reshape(-1)
+        points = np.asarray(points, dtype=np.float64)
+        if points.shape != (nodes.size, 3) or not np.all(np.isfinite(points)):
+            raise TissueInputError(
+                f"points must be finite with shape ({nodes.size}, 3) for {nodes.size} nodes; "
+                f"got {points.shape}"
+            )
+        if nodes.size and (nodes.min() < 0 or nodes.max() >= self.mesh.node_count):
+            raise TissueInputError(
+                f"node indices must lie in [0, {self.mesh.node_count - 1}]; "
+                f"got [{nodes.min()}, {nodes.max()}]"
+            )
+        if np.unique(nodes).size != nodes.size:
+            raise TissueInputError("prescribed nodes must be unique; remove the repeated indices")
+        if np.any(np.isin(nodes, self.mesh.fixed_nodes)):
+            raise TissueInputError(
+                "a fixed node cannot slide on a plane; leave the fixed nodes out of the set"
+            )
+        frames = NodeFrames.from_normals(
+            nodes, np.asarray(normals, dtype=np.float64), self.mesh.node_count
+        )
+        self._prescribed_dofs = 3 * nodes
+        self._prescribed_targets = np.einsum("ij,ij->i", frames.axes[:, 0], points)
+        self._frames = frames if nodes.size else None
+
     def prescribe_dofs(self, dofs: ArrayLike, targets: ArrayLike) -> None:
         """Prescribe individual coordinates, replacing any earlier prescribed set.
 
@@ -346,11 +386,13 @@ class TissueSimulator:
             raise TissueInputError("prescribed targets contain NaN or Inf")
         self._prescribed_dofs = dofs.copy()
         self._prescribed_targets = targets.copy()
+        self._frames = None
 
     def clear_prescribed(self) -> None:
         """Release every prescribed node (fixed nodes stay fixed)."""
         self._prescribed_dofs = np.zeros(0, dtype=np.int64)
         self._prescribed_targets = np.zeros(0)
+        self._frames = None
 
     def nodes_near_point(self, point: ArrayLike, radius_m: float) -> NDArray[np.int64]:
         """Indices of rest nodes within ``radius_m`` [m] of ``point`` [m]."""
@@ -370,7 +412,7 @@ class TissueSimulator:
         dofs, targets = self.constraints()
         with one_thread_below(3 * self.mesh.node_count, SERIAL_STEP_UNKNOWNS):
             outcome = self.integrator.step(
-                self._positions, self._velocities, dt, dofs, targets, terms
+                self._positions, self._velocities, dt, dofs, targets, terms, self._frames
             )
         return self.commit(outcome, dt, start)
 
@@ -393,7 +435,14 @@ class TissueSimulator:
         if self.config.quasi_static and (
             self._checked_dofs is None or not np.array_equal(dofs, self._checked_dofs)
         ):
-            check_rigid_motion_removed(self.mesh, dofs)
+            frames = self._frames
+            directions = None
+            if frames is not None:  # a framed node's dof lies along its frame's axis
+                directions = np.eye(3)[dofs % 3]
+                slots = frames.node_slots()[dofs // 3]
+                framed = slots >= 0
+                directions[framed] = frames.axes[slots[framed], dofs[framed] % 3]
+            check_rigid_motion_removed(self.mesh, dofs, directions)
             self._checked_dofs = dofs
         return dofs, targets
 

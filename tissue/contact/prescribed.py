@@ -16,10 +16,18 @@ back along the motion onto the probe's surface; otherwise the nearest surface po
 whose reaction would pull the probe (tension) leaves.
 This removes the paper's main limitation ("a priori knowledge of contact area needed").
 
+``sliding=True`` (online only) makes the contact frictionless: a node in contact is held
+only along the probe's normal, on the plane tangent to the probe at its nearest surface
+point at the step's pose, and slides freely within it (a Dirichlet condition on its normal
+coordinate, in a frame rotated to that normal; see :mod:`tissue.frames`). Its reaction is
+normal to the probe; it leaves contact when that reaction pulls.
+
 Where online prescribed displacement still differs from Lagrange multipliers:
 
-- nodes in contact stick to the probe (no tangential sliding: infinite friction), where LM
-  is frictionless;
+- without ``sliding``, nodes in contact stick to the probe (no tangential sliding: infinite
+  friction), where LM is frictionless; with it, a node holds the tangent plane of the step's
+  start for the whole step (on a curved probe, a node sliding s off the touching point
+  ends s^2 / 2R inside or outside the surface; the next step projects it again);
 - contact acts on volume boundary nodes, not on the collision surface's points (so its
   penetration is measured on those nodes: on a coarse volume the finer collision surface
   bulges between them by up to the chord's sag, about 1 mm at 623 tets);
@@ -54,12 +62,15 @@ class PrescribedParams:
 
     Attributes:
         online: update the node set every step from the probe's footprint.
+        sliding: (online) hold nodes along the probe's normal only, free to slide on it
+            (frictionless contact) instead of moving them rigidly with the probe.
         capture_distance_m: (offline) boundary nodes this close to the probe at first
             contact form the set [m].
         node_set: (offline) a given set of volume node indices instead.
     """
 
     online: bool = False
+    sliding: bool = False
     capture_distance_m: float = 0.002
     node_set: tuple[int, ...] | None = field(default=None)
 
@@ -68,6 +79,11 @@ class PrescribedParams:
             raise ConfigError(f"capture_distance_m must be >= 0; got {self.capture_distance_m!r}")
         if self.online and self.node_set is not None:
             raise ConfigError("a given node_set and online=True exclude each other; choose one")
+        if self.sliding and not self.online:
+            raise ConfigError(
+                "sliding=True needs online=True: the paper's fixed node set moves rigidly with "
+                "the probe"
+            )
 
 
 class PrescribedContact(FEContactModel):
@@ -120,11 +136,18 @@ class PrescribedContact(FEContactModel):
         before = self._last_position
         self._step_motion = None if before is None else position - before
         self._last_position = position
-        if self.params.online:
+        if self.params.sliding:
+            self._update_sliding()
+        elif self.params.online:
             self._update_online()
         elif self._nodes.size == 0:
             self._capture_offline()
-        if self._nodes.size:
+        if self._nodes.size and self.params.sliding:
+            # Each node on the plane tangent to the probe at its nearest surface point.
+            positions = self.sim.positions[self._nodes]
+            distance, normal = self.probe.signed_distance_world(positions)
+            self.sim.prescribe_normal(self._nodes, positions - distance[:, None] * normal, normal)
+        elif self._nodes.size:
             self.sim.prescribe(self._nodes, self.probe.to_world_frame(self._local))
         else:
             self.sim.clear_prescribed()
@@ -188,6 +211,24 @@ class PrescribedContact(FEContactModel):
             local = np.concatenate([local, self.probe.to_probe_frame(on_surface)])
         order = np.argsort(nodes)
         self._nodes, self._local = nodes[order], local[order]
+
+    def _update_sliding(self) -> None:
+        """Frictionless online set: nodes inside the probe's new pose join; a node leaves
+        when its (normal) reaction pulls the probe, unless the new pose holds it inside, or
+        at once when the new pose lies more than ``_PULL_RELEASE_M`` clear of it."""
+        positions = self.sim.positions
+        nodes = self._nodes
+        if nodes.size:
+            distance, normal = self.probe.signed_distance_world(positions[nodes])
+            keep = distance <= _PULL_RELEASE_M
+            reaction = self._last_reaction
+            if reaction is not None and reaction.shape[0] == nodes.size:
+                keep &= (np.einsum("ij,ij->i", reaction, normal) > 0.0) | (distance < 0.0)
+            nodes = nodes[keep]
+        candidates = np.setdiff1d(self.boundary_nodes, self._nodes)
+        distance, _ = self.probe.signed_distance_world(positions[candidates])
+        self._nodes = np.union1d(nodes, candidates[distance < 0.0])
+        self._local = np.zeros((self._nodes.size, 3))  # unused: sliding nodes keep no anchor
 
     def _entry_points(
         self,
