@@ -198,3 +198,55 @@ def _rotate_blocks(indptr, indices, data, nodes, slots, axes):  # pragma: no cov
                 for j in range(3):
                     data[q + j] = left[i, j]
     return True
+
+
+@dataclass(frozen=True)
+class FrameChange:
+    """The change of coordinates from one set of node frames to another, P = Q_new Q_old^T.
+
+    P is the identity except at ``nodes``, where it is ``blocks`` (k, 3, 3): R_new R_old^T,
+    R the node's frame (the identity for a node without one).
+    """
+
+    nodes: NDArray[np.int64]
+    blocks: NDArray[np.float64]
+
+    @classmethod
+    def between(cls, old: NodeFrames | None, new: NodeFrames | None) -> FrameChange | None:
+        """P from ``old`` to ``new`` coordinates, or None where no frame differs."""
+        if old is new:
+            return None
+        nodes = np.union1d(
+            old.nodes if old is not None else np.zeros(0, dtype=np.int64),
+            new.nodes if new is not None else np.zeros(0, dtype=np.int64),
+        )
+        rotation_old = _rotations(old, nodes)
+        rotation_new = _rotations(new, nodes)
+        moved = np.abs(rotation_new - rotation_old).max(axis=(1, 2)) > 0.0
+        if not np.any(moved):
+            return None
+        nodes = nodes[moved]
+        blocks = np.einsum("kij,klj->kil", rotation_new[moved], rotation_old[moved])
+        return cls(nodes, blocks)
+
+    def apply(self, array: NDArray[np.float64], transpose: bool = False) -> NDArray[np.float64]:
+        """P a (or P^T a) for a flat vector (3 node_count,) or a stack of columns (3 node_count,
+        m); a new array."""
+        out = np.array(array, dtype=np.float64, order="C", copy=True)
+        blocks = out.reshape(-1, 3, *out.shape[1:])  # a view of the C-ordered copy
+        rotation = np.swapaxes(self.blocks, 1, 2) if transpose else self.blocks
+        if out.ndim == 1:
+            blocks[self.nodes] = np.einsum("kij,kj->ki", rotation, blocks[self.nodes])
+        else:
+            blocks[self.nodes] = np.einsum("kij,kjm->kim", rotation, blocks[self.nodes])
+        return out
+
+
+def _rotations(frames: NodeFrames | None, nodes: NDArray[np.int64]) -> NDArray[np.float64]:
+    """Each listed node's frame, (k, 3, 3) (the identity where it has none)."""
+    out = np.broadcast_to(np.eye(3), (nodes.size, 3, 3)).copy()
+    if frames is not None:
+        slots = frames.node_slots()[nodes]
+        framed = slots >= 0
+        out[framed] = frames.axes[slots[framed]]
+    return out

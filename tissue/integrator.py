@@ -377,7 +377,12 @@ class IncrementalPotential:
         values = np.zeros_like(z_flat)
         values[self.dofs] = self.targets - z_flat[self.dofs]
         return ConstrainedSystem(
-            matrix, rhs, self.constrained, values, _rank_one_terms(self.terms, y3)
+            matrix,
+            rhs,
+            self.constrained,
+            values,
+            _rank_one_terms(self.terms, y3),
+            frames=self.frames,
         )
 
     def newton_direction(self, y_flat, gradient, project, tolerance, enough=0.0):
@@ -652,7 +657,7 @@ class ImplicitIntegrator:
         row_pointer = np.concatenate([[0], np.cumsum(counts)])
         positions = np.arange(row_pointer[-1]) + np.repeat(starts - row_pointer[:-1], counts)
         rows = (row_pointer, matrix.indices[positions], matrix.data[positions].copy())
-        system = ConstrainedSystem(matrix, rhs, self._dof_mask(dofs), values)
+        system = ConstrainedSystem(matrix, rhs, self._dof_mask(dofs), values, frames=frames)
         return PaperSystem(system, rows, rhs, dofs, frames)
 
     def paper_finish(self, x, v, h, linear: PaperSystem, solution, report) -> StepOutcome:

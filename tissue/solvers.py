@@ -46,6 +46,7 @@ from numpy.typing import NDArray
 
 from tissue.choices import Choice
 from tissue.errors import ConfigError
+from tissue.frames import FrameChange, NodeFrames
 from tissue.pardiso import (
     PardisoError,
     PardisoFactorization,
@@ -430,6 +431,32 @@ def _eliminate(indptr, indices, data, constrained):  # pragma: no cover - compil
 
 
 @numba.njit(cache=True)
+def _entries_touching(indptr, indices, dofs):  # pragma: no cover - compiled
+    """Positions in a symmetric CSR pattern (sorted rows) of every entry in the rows and
+    columns of ``dofs``, with repeats."""
+    count = 0
+    for d in dofs:
+        count += 2 * (indptr[d + 1] - indptr[d])
+    out = np.empty(count, dtype=np.int64)
+    q = 0
+    for d in dofs:
+        for k in range(indptr[d], indptr[d + 1]):
+            out[q] = k
+            q += 1
+            # The mirror entry (column, d) in the column's row.
+            low, high = indptr[indices[k]], indptr[indices[k] + 1]
+            while low < high:
+                middle = (low + high) // 2
+                if indices[middle] < d:
+                    low = middle + 1
+                else:
+                    high = middle
+            out[q] = low
+            q += 1
+    return out
+
+
+@numba.njit(cache=True)
 def _add_known_columns(indptr, indices, data, values, out):  # pragma: no cover - compiled
     """out += A values for a symmetric CSR A, visiting only the rows of nonzero values.
 
@@ -512,6 +539,8 @@ class ConstrainedSystem:
         values: the known values at constrained dofs (other entries ignored), shape (n,).
         rank_one: the terms of ``matrix`` that change in low rank between solves (already
             included in it), or None; ``reuse`` corrects its kept factorisation for them.
+        frames: the node frames the system is written in (None: world coordinates); ``reuse``
+            turns its kept factorisation into them.
     """
 
     def __init__(
@@ -521,8 +550,10 @@ class ConstrainedSystem:
         constrained: NDArray[np.bool_],
         values: NDArray[np.float64],
         rank_one: RankOneTerms | None = None,
+        frames: NodeFrames | None = None,
     ) -> None:
         self.rank_one = rank_one
+        self.frames = frames
         values = np.where(constrained, values, 0.0)
         # Move the known columns to the right-hand side before eliminating them (by symmetry,
         # the rows of the nonzero known values: a few probe nodes instead of the whole matrix).
@@ -533,8 +564,33 @@ class ConstrainedSystem:
         self.constrained = constrained
         self.values = values
         self._full_times_values = known
+        # A framed node's constrained axis turns with its frame from step to step; a kept
+        # factorisation must not hold it eliminated (see ``unframed``): keep its entries.
+        self._framed_entries: (
+            tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.bool_]] | None
+        ) = None
+        if frames is not None:
+            framed = np.zeros(constrained.size, dtype=bool)
+            framed[(3 * frames.nodes[:, None] + np.arange(3)).reshape(-1)] = True
+            framed &= constrained
+            positions = np.unique(
+                _entries_touching(matrix.indptr, matrix.indices, np.flatnonzero(framed))
+            )
+            self._framed_entries = (positions, matrix.data[positions].copy(), framed)
         _eliminate(matrix.indptr, matrix.indices, matrix.data, constrained)
         self.matrix = matrix
+
+    def unframed(self) -> tuple[sp.csr_matrix, NDArray[np.bool_]]:
+        """The matrix with the constrained axes of framed nodes not eliminated (a copy), and
+        the dofs still eliminated in it: what a kept factorisation factorises, so that the
+        later systems' turned frames find those axes in it (their constraints are then
+        corrected for, :class:`_ConstrainedSince`). The system's own when it has no frames."""
+        if self._framed_entries is None:
+            return self.matrix, self.constrained
+        positions, values, framed = self._framed_entries
+        matrix = self.matrix.copy()
+        matrix.data[positions] = values
+        return matrix, self.constrained & ~framed
 
     def with_rhs(self, rhs: NDArray[np.float64]) -> ConstrainedSystem:
         """The same (already eliminated) matrix with right-hand side ``rhs`` and the known
@@ -542,6 +598,8 @@ class ConstrainedSystem:
         other = object.__new__(ConstrainedSystem)
         other.matrix = self.matrix
         other.rank_one = self.rank_one
+        other.frames = self.frames
+        other._framed_entries = self._framed_entries
         other.constrained = self.constrained
         other.values = np.zeros_like(rhs)
         other.original_rhs = rhs
@@ -555,6 +613,8 @@ class ConstrainedSystem:
         other = object.__new__(ConstrainedSystem)
         other.matrix = self.matrix
         other.rank_one = self.rank_one
+        other.frames = self.frames
+        other._framed_entries = self._framed_entries
         other.constrained = self.constrained
         other.values = self.values
         other.original_rhs = self.original_rhs + load
@@ -828,6 +888,8 @@ class LinearSolver:
         # dofs constrained since (see _ConstrainedSince).
         self._reuse_constrained: NDArray[np.bool_] | None = None
         self._since: _ConstrainedSince | None = None
+        # The node frames the kept factorisation's matrix was written in.
+        self._reuse_frames: NodeFrames | None = None
         # The rank-one terms of the kept factorisation's matrix (None: unknown, so never
         # corrected), and its corrections for the terms changed since (see _RankOneSince).
         self._reuse_rank_one: RankOneTerms | None = None
@@ -861,28 +923,41 @@ class LinearSolver:
         factorization: Factorization | None,
         constrained: NDArray[np.bool_] | None,
         rank_one: RankOneTerms | None = None,
+        frames: NodeFrames | None = None,
     ) -> None:
         self._excess_iterations = 0.0
         self._reuse = factorization
         self._reuse_constrained = None if constrained is None else constrained.copy()
+        self._reuse_frames = frames
         self._since = None
         self._reuse_rank_one = rank_one
         self._rank_one_since = None
 
-    def _preconditioner(self, constrained: NDArray[np.bool_]) -> Factorization | None:
+    def _preconditioner(
+        self, constrained: NDArray[np.bool_], frames: NodeFrames | None = None
+    ) -> Factorization | None:
         """The kept factorisation as a preconditioner for a system with ``constrained``
-        dofs: itself, or corrected for the dofs constrained since it was computed (None when
-        there are too many of those: refactorise)."""
+        dofs written in ``frames``: itself, or corrected for the dofs constrained since it
+        was computed and turned into the system's frames (None when there are too many of
+        those dofs: refactorise)."""
         if self._reuse is None or self._reuse_constrained is None:
             return self._reuse
-        added = np.flatnonzero(constrained & ~self._reuse_constrained)
-        if added.size == 0:
+        change = FrameChange.between(self._reuse_frames, frames)
+        if change is None:
+            added = np.flatnonzero(constrained & ~self._reuse_constrained)
+        else:
+            # A framed node whose frame turned: every dof it has constrained is corrected for
+            # (along its new axis); the other dofs as usual.
+            turned = np.zeros(constrained.size, dtype=bool)
+            turned[(3 * change.nodes[:, None] + np.arange(3)).reshape(-1)] = True
+            added = np.flatnonzero(constrained & (turned | ~self._reuse_constrained))
+        if added.size == 0 and change is None:
             return self._reuse
         if added.size > MAX_CONSTRAINED_SINCE:
             return None
         if self._since is None:
             self._since = _ConstrainedSince(self._reuse, constrained.size)
-        return self._since.for_dofs(added)
+        return self._since.for_dofs(added, change)
 
     def _corrected_for_rank_one(
         self, kept: Factorization, system: ConstrainedSystem
@@ -908,13 +983,22 @@ class LinearSolver:
     def refresh_kept_factorization(self, system: ConstrainedSystem) -> Factorization:
         """Refactorise ``system``'s matrix now and keep it for later ``reuse`` solves
         (:attr:`kept_indefinite` says whether the matrix was not SPD)."""
-        preconditioner = self.factorizer.factorize_preconditioner(
-            system.matrix, self.single_precision_preconditioner, system.constrained
-        )
+        preconditioner = self._refactorize(system)
         self.kept_indefinite = preconditioner is None
         if preconditioner is None:  # not SPD: an exact (indefinite) factorisation
             preconditioner, _ = self.factorize(system)
-        self._keep(preconditioner, system.constrained, system.rank_one)
+            self._keep(preconditioner, system.constrained, system.rank_one, system.frames)
+        return preconditioner
+
+    def _refactorize(self, system: ConstrainedSystem) -> Factorization | None:
+        """A fresh SPD factorisation of ``system``'s matrix (with the constrained axes of
+        framed nodes left in, :meth:`ConstrainedSystem.unframed`), kept; None if not SPD."""
+        matrix, eliminated = system.unframed()
+        preconditioner = self.factorizer.factorize_preconditioner(
+            matrix, self.single_precision_preconditioner, eliminated
+        )
+        if preconditioner is not None:
+            self._keep(preconditioner, eliminated, system.rank_one, system.frames)
         return preconditioner
 
     def solve(
@@ -940,6 +1024,7 @@ class LinearSolver:
         factorization, indefinite = self.factorizer.factorize(system.matrix, system.constrained)
         self.last_factorization = factorization
         self._reuse = factorization
+        self._reuse_frames = system.frames
         self._reuse_rank_one = None
         self._rank_one_since = None
         return factorization, indefinite
@@ -993,7 +1078,7 @@ class LinearSolver:
         tolerance = tolerance or 1e-8
         cap = self.config.reuse_max_iterations
         spent = 0
-        kept = self._preconditioner(system.constrained)
+        kept = self._preconditioner(system.constrained, system.frames)
         if kept is not None and kept is self._reuse:
             kept = self._corrected_for_rank_one(kept, system)
         corrected = self._rank_one_since if kept is self._rank_one_since else None
@@ -1019,11 +1104,11 @@ class LinearSolver:
                 return x, SolveReport(iterations, residual, True)
             spent = iterations
         # CG stalled, or refreshing pays (or nothing to reuse): a fresh factorisation.
-        preconditioner = self.factorizer.factorize_preconditioner(
-            system.matrix, self.single_precision_preconditioner, system.constrained
-        )
+        preconditioner = self._refactorize(system)
+        if preconditioner is not None and system.frames is not None:
+            # Factorised with the framed nodes' constrained axes free: corrected for them.
+            preconditioner = self._preconditioner(system.constrained, system.frames)
         if preconditioner is not None:
-            self._keep(preconditioner, system.constrained, system.rank_one)
             x = _start(system, initial_guess)
             with _threads_for(x.shape[0]):
                 iterations, residual = _factor_pcg(system, preconditioner, x, cap, tolerance)
@@ -1062,6 +1147,15 @@ class _ConstrainedSince:
     solved once per dof (cached while F is kept), in the same multi-RHS call as the first
     application after the dof joined. Dofs released since F (identity in F, free now) are
     not corrected: CG absorbs them.
+
+    A system written in other node frames than F's matrix (prescribed nodes sliding on the
+    probe: :mod:`tissue.frames`) is preconditioned by G = P F^-1 P^T, P the change of
+    coordinates (:class:`tissue.frames.FrameChange`), corrected in the same form with
+    Y = G E_D. A dof d of a node whose frame turned is the direction P^T e_d in F's
+    coordinates: its column of Y combines the node's three columns of F^-1 (kept like the
+    others, so a frame that turns every step costs no new solves; Y itself is formed again,
+    O(n |D|)). A direction F held eliminated and the system's frame has turned away from is
+    not corrected (as a released dof).
     """
 
     def __init__(self, base: Factorization, size: int) -> None:
@@ -1080,16 +1174,31 @@ class _ConstrainedSince:
         # The dofs to correct for (set by for_dofs), and those of them without a column yet.
         self._wanted: NDArray[np.int64] | None = None
         self._pending: list[int] = []
+        # The change of frames from F's matrix to the system's (None: the same), the one the
+        # active correction was formed for, and its columns Y (n, |D|) when one applies.
+        self._change: FrameChange | None = None
+        self._active_change: FrameChange | None = None
+        self._turned_columns: NDArray[np.float64] | None = None
+        self._every_column = np.zeros(0, dtype=np.int64)
 
-    def for_dofs(self, dofs: NDArray[np.int64]) -> Factorization:
-        """Correct for ``dofs`` (every dof constrained since F, sorted). The columns of dofs
-        not seen before are solved together with the next right-hand side (:meth:`solve`)."""
-        self._pending = [int(d) for d in dofs if int(d) not in self.slot]
+    def for_dofs(self, dofs: NDArray[np.int64], change: FrameChange | None = None) -> Factorization:
+        """Correct for ``dofs`` (every dof constrained since F, sorted), in the coordinates
+        ``change`` turns F's into (None: F's own). The columns of dofs not seen before are
+        solved together with the next right-hand side (:meth:`solve`)."""
+        needed = [int(d) for d in dofs]
+        if change is not None:  # every dof of a turned node: its columns combine
+            turned = set(change.nodes.tolist())
+            needed += [3 * (d // 3) + axis for d in needed if d // 3 in turned for axis in range(3)]
+        self._pending = list(dict.fromkeys(d for d in needed if d not in self.slot))
         self._wanted = dofs
+        self._change = change
         return self
 
     def solve(self, rhs: NDArray[np.float64]) -> NDArray[np.float64]:
         assert self._wanted is not None
+        change = self._change
+        if change is not None:
+            rhs = change.apply(rhs, transpose=True)
         if self._pending:
             # The new columns and this right-hand side in one multi-RHS call: Pardiso reads
             # the factor once for all of them (at 176,506 tets one right-hand side took 45
@@ -1104,19 +1213,55 @@ class _ConstrainedSince:
             z = np.array(solved[:, -1], dtype=np.float64)
         else:
             z = np.array(self.base.solve(rhs), dtype=np.float64).reshape(-1)
-        if self._active is None or not np.array_equal(self._active, self._wanted):
-            self._active = self._wanted.copy()
-            self._active_slots = np.array([self.slot[int(d)] for d in self._active], dtype=np.int64)
-            capacitance = self.columns[np.ix_(self._active, self._active_slots)]
-            try:
-                self._factor = scipy.linalg.cho_factor(0.5 * (capacitance + capacitance.T))
-            except np.linalg.LinAlgError:  # not positive definite (round-off): uncorrected
-                self._factor = None
-        if self._factor is None:
+        if change is not None:
+            z = change.apply(z)
+        if (
+            self._active is None
+            or not np.array_equal(self._active, self._wanted)
+            or change is not self._active_change
+        ):
+            self._form_correction(change)
+        if self._factor is None or self._active is None or self._active.size == 0:
             return z
         weights = scipy.linalg.cho_solve(self._factor, z[self._active])
-        _subtract_columns(z, self.columns, self._active_slots, weights)
+        if self._turned_columns is not None:
+            _subtract_columns(z, self._turned_columns, self._every_column, weights)
+        else:
+            _subtract_columns(z, self.columns, self._active_slots, weights)
         return z
+
+    def _form_correction(self, change: FrameChange | None) -> None:
+        """Y = G E_D and the Cholesky factor of S = E_D^T Y for the wanted dofs."""
+        assert self._wanted is not None
+        self._active = self._wanted.copy()
+        self._active_change = change
+        self._active_slots = np.array([self.slot[int(d)] for d in self._active], dtype=np.int64)
+        self._turned_columns = None
+        if self._active.size == 0:
+            self._factor = None
+            return
+        if change is None:
+            capacitance = self.columns[np.ix_(self._active, self._active_slots)]
+        else:
+            # Column d of F^-1 P^T E_D: e_d's own column, or for a turned node the
+            # combination sum_i P[j, i] F^-1 e_(3a+i) (P^T e_d is row j of P's block).
+            block_of = {int(node): k for k, node in enumerate(change.nodes)}
+            columns = np.empty((self.size, self._active.size))
+            for index, dof in enumerate(self._active):
+                node, axis = divmod(int(dof), 3)
+                k = block_of.get(node)
+                if k is None:
+                    columns[:, index] = self.columns[:, self.slot[int(dof)]]
+                    continue
+                slots = [self.slot[3 * node + i] for i in range(3)]
+                columns[:, index] = self.columns[:, slots] @ change.blocks[k, axis]
+            self._turned_columns = np.asfortranarray(change.apply(columns))
+            self._every_column = np.arange(self._active.size)
+            capacitance = self._turned_columns[self._active]
+        try:
+            self._factor = scipy.linalg.cho_factor(0.5 * (capacitance + capacitance.T))
+        except np.linalg.LinAlgError:  # not positive definite (round-off): uncorrected
+            self._factor = None
 
     def _store(self, dofs: list[int], solved: NDArray[np.float64]) -> None:
         """Keep the columns F^-1 e_d of ``dofs``, shape (size, len(dofs))."""
