@@ -223,7 +223,7 @@ def test_sphere_force_follows_hertz(method: str) -> None:
 def test_sphere_force_follows_hertz_on_a_refined_block(method: str) -> None:
     """Hertz (Johnson 1985, section 4.2) within 2 % on a refined block (a / 5 cells under the
     contact, 124k tets; measured: LM +1.33 %, penalty +1.31 %, online prescribed
-    displacement with sliding nodes +1.32 %)."""
+    displacement with sliding nodes +1.33 %)."""
     _check_hertz(method, REFINED, 0.02)
 
 
