@@ -128,8 +128,8 @@ def _full_node_blocks(indptr, indices, nodes):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def _find_column(indices, start, stop, column):  # pragma: no cover - compiled
-    """Position of ``column`` in the sorted slice indices[start:stop], or -1."""
+def find_column(indices, start, stop, column):  # pragma: no cover - compiled
+    """Position of ``column`` in the sorted slice indices[start:stop] of a CSR row, or -1."""
     low, high = start, stop
     while low < high:
         middle = (low + high) // 2
@@ -185,7 +185,7 @@ def _rotate_blocks(indptr, indices, data, nodes, slots, axes):  # pragma: no cov
                 continue
             # The mirror block A_ba in b's rows: A_ba R_a^T.
             for i in range(3):
-                q = _find_column(indices, indptr[3 * b + i], indptr[3 * b + i + 1], 3 * a)
+                q = find_column(indices, indptr[3 * b + i], indptr[3 * b + i + 1], 3 * a)
                 if q < 0 or q + 2 >= indptr[3 * b + i + 1] or indices[q + 2] != 3 * a + 2:
                     return False
                 for j in range(3):

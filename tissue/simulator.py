@@ -309,13 +309,7 @@ class TissueSimulator:
                 f"targets must have shape ({nodes.size}, 3) for {nodes.size} nodes; "
                 f"got {targets.shape}"
             )
-        if nodes.size and (nodes.min() < 0 or nodes.max() >= self.mesh.node_count):
-            raise TissueInputError(
-                f"node indices must lie in [0, {self.mesh.node_count - 1}]; "
-                f"got [{nodes.min()}, {nodes.max()}]"
-            )
-        if np.unique(nodes).size != nodes.size:
-            raise TissueInputError("prescribed nodes must be unique; remove the repeated indices")
+        self._check_nodes(nodes)
         axes_array = np.asarray(axes, dtype=np.int64)
         if (
             axes_array.size == 0
@@ -345,13 +339,7 @@ class TissueSimulator:
                 f"points must be finite with shape ({nodes.size}, 3) for {nodes.size} nodes; "
                 f"got {points.shape}"
             )
-        if nodes.size and (nodes.min() < 0 or nodes.max() >= self.mesh.node_count):
-            raise TissueInputError(
-                f"node indices must lie in [0, {self.mesh.node_count - 1}]; "
-                f"got [{nodes.min()}, {nodes.max()}]"
-            )
-        if np.unique(nodes).size != nodes.size:
-            raise TissueInputError("prescribed nodes must be unique; remove the repeated indices")
+        self._check_nodes(nodes)
         if np.any(np.isin(nodes, self.mesh.fixed_nodes)):
             raise TissueInputError(
                 "a fixed node cannot slide on a plane; leave the fixed nodes out of the set"
@@ -362,6 +350,16 @@ class TissueSimulator:
         self._prescribed_dofs = 3 * nodes
         self._prescribed_targets = np.einsum("ij,ij->i", frames.axes[:, 0], points)
         self._frames = frames if nodes.size else None
+
+    def _check_nodes(self, nodes: NDArray[np.int64]) -> None:
+        """Raise TissueInputError unless ``nodes`` are unique indices of this mesh's nodes."""
+        if nodes.size and (nodes.min() < 0 or nodes.max() >= self.mesh.node_count):
+            raise TissueInputError(
+                f"node indices must lie in [0, {self.mesh.node_count - 1}]; "
+                f"got [{nodes.min()}, {nodes.max()}]"
+            )
+        if np.unique(nodes).size != nodes.size:
+            raise TissueInputError("prescribed nodes must be unique; remove the repeated indices")
 
     def prescribe_dofs(self, dofs: ArrayLike, targets: ArrayLike) -> None:
         """Prescribe individual coordinates, replacing any earlier prescribed set.

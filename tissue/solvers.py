@@ -46,7 +46,7 @@ from numpy.typing import NDArray
 
 from tissue.choices import Choice
 from tissue.errors import ConfigError
-from tissue.frames import FrameChange, NodeFrames
+from tissue.frames import FrameChange, NodeFrames, find_column
 from tissue.pardiso import (
     PardisoError,
     PardisoFactorization,
@@ -433,7 +433,7 @@ def _eliminate(indptr, indices, data, constrained):  # pragma: no cover - compil
 @numba.njit(cache=True)
 def _entries_touching(indptr, indices, dofs):  # pragma: no cover - compiled
     """Positions in a symmetric CSR pattern (sorted rows) of every entry in the rows and
-    columns of ``dofs``, with repeats."""
+    columns of ``dofs``, with repeats (-1 where a mirror entry is missing)."""
     count = 0
     for d in dofs:
         count += 2 * (indptr[d + 1] - indptr[d])
@@ -444,14 +444,7 @@ def _entries_touching(indptr, indices, dofs):  # pragma: no cover - compiled
             out[q] = k
             q += 1
             # The mirror entry (column, d) in the column's row.
-            low, high = indptr[indices[k]], indptr[indices[k] + 1]
-            while low < high:
-                middle = (low + high) // 2
-                if indices[middle] < d:
-                    low = middle + 1
-                else:
-                    high = middle
-            out[q] = low
+            out[q] = find_column(indices, indptr[indices[k]], indptr[indices[k] + 1], d)
             q += 1
     return out
 
@@ -576,6 +569,8 @@ class ConstrainedSystem:
             positions = np.unique(
                 _entries_touching(matrix.indptr, matrix.indices, np.flatnonzero(framed))
             )
+            if positions.size and positions[0] < 0:
+                raise ValueError("node frames need a matrix with a symmetric sparsity pattern")
             self._framed_entries = (positions, matrix.data[positions].copy(), framed)
         _eliminate(matrix.indptr, matrix.indices, matrix.data, constrained)
         self.matrix = matrix
