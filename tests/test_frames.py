@@ -12,6 +12,7 @@ from tissue.block import block_mesh
 from tissue.errors import TissueInputError
 from tissue.frames import NodeFrames
 from tissue.material import NeoHookean, TissueMaterials
+from tissue.mesh import node_dofs
 from tissue.mesh_io import nodes_on_plane
 from tissue.simulator import SimulationConfig, TissueSimulator
 from tissue.solvers import ConstrainedSystem, LinearSolver, LinearSolverConfig
@@ -127,7 +128,7 @@ def _framed_system(stiffness, mesh, nodes, normals, rhs):
     matrix = stiffness.copy()
     frames.rotate_matrix(matrix)
     constrained = np.zeros(mesh.dof_count, dtype=bool)
-    constrained[(3 * mesh.fixed_nodes[:, None] + np.arange(3)).reshape(-1)] = True
+    constrained[node_dofs(mesh.fixed_nodes)] = True
     constrained[3 * nodes] = True
     return ConstrainedSystem(
         matrix, frames.to_local(rhs), constrained, np.zeros(mesh.dof_count), frames=frames

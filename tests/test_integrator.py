@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from tissue.block import block_mesh
-from tissue.integrator import node_dofs
 from tissue.material import NeoHookean, TissueMaterials
+from tissue.mesh import node_dofs
 from tissue.mesh_io import nodes_on_plane
 from tissue.simulator import SimulationConfig, TissueSimulator, settle
 from tissue.status import StepStatus

@@ -606,12 +606,12 @@ class ImplicitIntegrator:
         if self.external_force is not None:
             force = force + self.external_force.reshape(-1)
         v_flat = np.ascontiguousarray(v, dtype=np.float64).reshape(-1)
-        x_flat = x.reshape(-1) if frames is None else frames.to_local(x.reshape(-1))
-        v_target = v_flat if frames is None else frames.to_local(v_flat)
+        x_local = x.reshape(-1) if frames is None else frames.to_local(x.reshape(-1))
+        v_local = v_flat if frames is None else frames.to_local(v_flat)
         values = np.zeros(x.size)
         if cfg.quasi_static:
             rhs = force
-            values[dofs] = targets - x_flat[dofs]
+            values[dofs] = targets - x_local[dofs]
         else:
             m = self.mass_dof
             elastic = state.stiffness
@@ -627,7 +627,7 @@ class ImplicitIntegrator:
                 stiffness_v = elastic_v + self._term_stiffness_product(x, terms, v_flat)
             damping_force = cfg.rayleigh_mass * m * v_flat + cfg.rayleigh_stiffness * elastic_v
             rhs = h * (force - damping_force) - h * h * stiffness_v
-            values[dofs] = (targets - x_flat[dofs]) / h - v_target[dofs]
+            values[dofs] = (targets - x_local[dofs]) / h - v_local[dofs]
             # h^2 K + h r_K K_elastic + (1 + h r_M) M, in place.
             if matrix is elastic:
                 _scale_add_diagonal(
@@ -1025,16 +1025,6 @@ class ImplicitIntegrator:
         for term in terms:
             total += term.evaluate(positions).forces.reshape(-1)
         return total
-
-
-def node_dofs(nodes: NDArray[np.int64], axes: tuple[int, ...] = (0, 1, 2)) -> NDArray[np.int64]:
-    """Dof indices (3·node + axis), node-major, of ``nodes`` along ``axes``.
-
-    Returns:
-        shape (len(nodes)·len(axes),).
-    """
-    nodes = np.asarray(nodes, dtype=np.int64)
-    return (3 * nodes[:, None] + np.asarray(axes, dtype=np.int64)).reshape(-1)
 
 
 def _pattern_positions(matrix: sp.csr_matrix, rows, cols, keys) -> NDArray[np.int64]:

@@ -270,6 +270,16 @@ def _check_mesh(mesh: TetMesh) -> None:
         )
 
 
+def node_dofs(nodes: NDArray[np.int64], axes: tuple[int, ...] = (0, 1, 2)) -> NDArray[np.int64]:
+    """Dof indices (3·node + axis), node-major, of ``nodes`` along ``axes``.
+
+    Returns:
+        shape (len(nodes)·len(axes),).
+    """
+    nodes = np.asarray(nodes, dtype=np.int64)
+    return (3 * nodes[:, None] + np.asarray(axes, dtype=np.int64)).reshape(-1)
+
+
 def check_rigid_motion_removed(
     mesh: TetMesh,
     constrained_dofs: NDArray[np.int64],

@@ -33,10 +33,9 @@ from tissue.integrator import (
     IntegrationMode,
     IntegratorConfig,
     StepOutcome,
-    node_dofs,
 )
 from tissue.material import TissueMaterials
-from tissue.mesh import TetMesh, check_rigid_motion_removed
+from tissue.mesh import TetMesh, check_rigid_motion_removed, node_dofs
 from tissue.solvers import SERIAL_STEP_UNKNOWNS, LinearSolverConfig, one_thread_below
 from tissue.status import StepStatus
 

@@ -47,6 +47,7 @@ from numpy.typing import NDArray
 from tissue.choices import Choice
 from tissue.errors import ConfigError
 from tissue.frames import FrameChange, NodeFrames, find_column
+from tissue.mesh import node_dofs
 from tissue.pardiso import (
     PardisoError,
     PardisoFactorization,
@@ -564,7 +565,7 @@ class ConstrainedSystem:
         ) = None
         if frames is not None:
             framed = np.zeros(constrained.size, dtype=bool)
-            framed[(3 * frames.nodes[:, None] + np.arange(3)).reshape(-1)] = True
+            framed[node_dofs(frames.nodes)] = True
             framed &= constrained
             positions = np.unique(
                 _entries_touching(matrix.indptr, matrix.indices, np.flatnonzero(framed))
@@ -948,7 +949,7 @@ class LinearSolver:
             # A framed node whose frame turned: every dof it has constrained is corrected for
             # (along its new axis); the other dofs as usual.
             turned = np.zeros(constrained.size, dtype=bool)
-            turned[(3 * change.nodes[:, None] + np.arange(3)).reshape(-1)] = True
+            turned[node_dofs(change.nodes)] = True
             added = np.flatnonzero(constrained & (turned | ~self._reuse_constrained))
         if added.size == 0 and change is None:
             return self._reuse
