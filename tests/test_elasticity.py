@@ -164,6 +164,9 @@ def test_forces_and_stiffness_match_finite_differences(
     force_error, stiffness_error = central_difference_check(el, x, step=1e-8)
     assert force_error < 1e-6
     assert stiffness_error < 1e-6
+    # The gather stores each upper block's transpose as its lower block: bitwise symmetric.
+    stiffness = el.evaluate(x).stiffness
+    assert (stiffness != stiffness.T).nnz == 0
 
 
 @pytest.mark.parametrize("anti_locking", ANTI_LOCKING)

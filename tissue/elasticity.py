@@ -211,7 +211,12 @@ class Elasticity:
             block_ptr = _counts_to_ptr(np.bincount(block_rows, minlength=n))
         self._block_ptr = block_ptr
         self._block_cols = block_cols
-        keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(block_ptr)) * n + block_cols
+        block_rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(block_ptr))
+        keys = block_rows * n + block_cols
+        # Block (c, b) of each block (b, c): the gather stores upper blocks twice.
+        self._block_mirror = np.searchsorted(keys, block_cols * n + block_rows)
+        if not np.array_equal(keys[self._block_mirror], block_cols * n + block_rows):
+            raise AssertionError("the stiffness block pattern is not symmetric")
         query = np.repeat(tets, 4, axis=1) * n + np.tile(tets, (1, 4))
         pos = np.searchsorted(keys, query) - block_ptr[np.repeat(tets, 4, axis=1)]
         # Each stiffness block's tet contributions (the gather sums them in registers).
@@ -285,6 +290,8 @@ class Elasticity:
             data = np.empty(self.nnz)  # every entry is written
             kern.gather_elements(
                 self._block_ptr,
+                self._block_cols,
+                self._block_mirror,
                 self._node_order,
                 self._contribution_ptr,
                 self._contributions,

@@ -748,6 +748,8 @@ def block_contributions(
 @nb.njit(parallel=True, cache=True, fastmath=False)
 def gather_elements(
     block_ptr: np.ndarray,
+    block_cols: np.ndarray,
+    mirror: np.ndarray,
     node_order: np.ndarray,
     contribution_ptr: np.ndarray,
     contributions: np.ndarray,
@@ -772,6 +774,13 @@ def gather_elements(
     once (adding each contribution to memory cost ~15 % more here). The diagonal block's
     contributions (a = c) are the node's incidences in element order: its force is summed
     there, as :func:`gather_forces` does (bitwise the same).
+
+    Only the diagonal and upper blocks (c >= b; ``block_cols[q]`` is block q's column node)
+    are summed; each upper block is also stored transposed as block ``mirror[q]`` = (c, b).
+    That is exactly what summing (c, b) would give: its contributions are the same tets in
+    the same order and each term is the transpose of (b, c)'s (products commute, the skew
+    part changes sign twice), so the matrix stays bitwise symmetric, for 10 block terms a
+    tet instead of 16.
     """
     node_count = block_ptr.shape[0] - 1
     for chunk in nb.prange((node_count + _CHUNK - 1) // _CHUNK):
@@ -784,6 +793,9 @@ def gather_elements(
             fy = 0.0
             fz = 0.0
             for q in range(first, block_ptr[b + 1]):
+                c = block_cols[q]
+                if c < b:
+                    continue  # the mirror of (c, b), stored by row c
                 k00 = 0.0
                 k01 = 0.0
                 k02 = 0.0
@@ -864,6 +876,22 @@ def gather_elements(
                 data[pos] = k20
                 data[pos + 1] = k21
                 data[pos + 2] = k22
+                if c > b:
+                    m = mirror[q]
+                    m_first = block_ptr[c]
+                    m_stride = 3 * (block_ptr[c + 1] - m_first)
+                    pos = 9 * m_first + 3 * (m - m_first)
+                    data[pos] = k00
+                    data[pos + 1] = k10
+                    data[pos + 2] = k20
+                    pos += m_stride
+                    data[pos] = k01
+                    data[pos + 1] = k11
+                    data[pos + 2] = k21
+                    pos += m_stride
+                    data[pos] = k02
+                    data[pos + 1] = k12
+                    data[pos + 2] = k22
             forces[b, 0] = fx
             forces[b, 1] = fy
             forces[b, 2] = fz
