@@ -995,14 +995,17 @@ class ImplicitIntegrator:
         data = stiffness.data.copy()
         for term in terms:
             evaluation = term.evaluate(positions)
-            if evaluation.stiffness_values.size:
-                where = _pattern_positions(
-                    stiffness,
-                    evaluation.stiffness_rows,
-                    evaluation.stiffness_cols,
-                    self._pattern_keys(stiffness),
+            if evaluation.stiffness_values.size and not _add_triplets(
+                stiffness.indptr,
+                stiffness.indices,
+                data,
+                evaluation.stiffness_rows,
+                evaluation.stiffness_cols,
+                evaluation.stiffness_values,
+            ):
+                raise ValueError(
+                    "an energy term's stiffness couples dofs outside the mesh's pattern"
                 )
-                np.add.at(data, where, evaluation.stiffness_values)
         return sp.csr_matrix((data, stiffness.indices, stiffness.indptr), shape=stiffness.shape)
 
     @staticmethod
@@ -1027,17 +1030,28 @@ class ImplicitIntegrator:
         return total
 
 
-def _pattern_positions(matrix: sp.csr_matrix, rows, cols, keys) -> NDArray[np.int64]:
-    """Positions in a CSR data array of entries (rows, cols), which must be in the pattern.
+@numba.njit(cache=True)
+def _add_triplets(indptr, indices, data, rows, cols, values):  # pragma: no cover - compiled
+    """data[(rows[k], cols[k])] += values[k] in order, each entry found by bisection in its
+    row's sorted columns; False (data partly updated) if one is outside the pattern.
 
-    ``keys`` are the pattern's row * n + col in storage order (sorted for sorted CSR).
-    """
-    wanted = rows.astype(np.int64) * matrix.shape[1] + cols
-    where = np.searchsorted(keys, wanted)
-    where = np.minimum(where, keys.size - 1)
-    if np.any(keys[where] != wanted):
-        raise ValueError("an energy term's stiffness couples dofs outside the mesh's pattern")
-    return where
+    (Searching the whole pattern's keys with numpy and ``np.add.at`` took ~0.1 ms for a
+    few contact points' 144 entries each at 4,126 tets.)"""
+    for k in range(rows.shape[0]):
+        row = rows[k]
+        col = cols[k]
+        lo = indptr[row]
+        hi = indptr[row + 1]
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if indices[mid] < col:
+                lo = mid + 1
+            else:
+                hi = mid
+        if lo == indptr[row + 1] or indices[lo] != col:
+            return False
+        data[lo] += values[k]
+    return True
 
 
 def _extrapolate(y, step, slope, accepted, energy, gradient, evaluate):

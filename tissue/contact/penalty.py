@@ -67,6 +67,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -183,40 +184,43 @@ class PenaltyTerm:
         contacts = detect_contacts(self.surface, positions, self.probe, reach)
         depth = self.distance - contacts.distance  # > 0 past the contact distance
         magnitude = np.maximum(self.offsets[contacts.points] + self.stiffness * depth, 0.0)
-        node_count = positions.shape[0]
-        point_forces = magnitude[:, None] * contacts.normal  # on the tissue, away from the probe
         tet_nodes = self.surface.embedding.tet_nodes[contacts.points]
         weights = self.surface.embedding.weights[contacts.points]
-        forces = np.zeros((node_count, 3))
-        np.add.at(forces, tet_nodes, weights[:, :, None] * point_forces[:, None, :])
-        # k_s (w_a n)(w_b n)^T for every pair of the point's tet nodes; normal frozen.
         active = magnitude > 0.0
-        w, n, t = weights[active], contacts.normal[active], tet_nodes[active]
-        blocks = (
-            self.stiffness
-            * w[:, :, None, None, None]
-            * w[:, None, :, None, None]
-            * n[:, None, None, :, None]
-            * n[:, None, None, None, :]
-        )  # (k, 4, 4, 3, 3)
-        row_nodes = np.broadcast_to(t[:, :, None, None, None], blocks.shape)
-        col_nodes = np.broadcast_to(t[:, None, :, None, None], blocks.shape)
-        row_axes = np.broadcast_to(np.arange(3)[None, None, None, :, None], blocks.shape)
-        col_axes = np.broadcast_to(np.arange(3)[None, None, None, None, :], blocks.shape)
+        count = int(np.count_nonzero(active))
+        forces = np.zeros((positions.shape[0], 3))  # on the tissue, away from the probe
+        dofs = np.empty((count, 12), dtype=np.int64)
+        vectors = np.empty((count, 12))
+        rows = np.empty(144 * count, dtype=np.int64)
+        cols = np.empty(144 * count, dtype=np.int64)
+        values = np.empty(144 * count)
+        _spring_terms(
+            tet_nodes,
+            weights,
+            contacts.normal,
+            magnitude,
+            self.stiffness,
+            forces,
+            dofs,
+            vectors,
+            rows,
+            cols,
+            values,
+        )
         evaluation = TermEvaluation(
             energy_j=0.5 * float(np.sum(magnitude**2)) / self.stiffness,
             forces=forces,
-            stiffness_rows=(3 * row_nodes + row_axes).reshape(-1),
-            stiffness_cols=(3 * col_nodes + col_axes).reshape(-1),
-            stiffness_values=blocks.reshape(-1),
+            stiffness_rows=rows,
+            stiffness_cols=cols,
+            stiffness_values=values,
             # The same stiffness as one term k_s v v^T per active point, v = (w_a n)_a over
             # its tet's 12 dofs: a kept factorisation is corrected for points entering and
             # leaving contact in low rank (tissue.solvers._RankOneSince).
             rank_one=RankOneTerms(
                 keys=contacts.points[active],
-                dofs=(3 * t[:, :, None] + np.arange(3)).reshape(-1, 12),
-                vectors=(w[:, :, None] * n[:, None, :]).reshape(-1, 12),
-                scales=np.full(int(np.count_nonzero(active)), self.stiffness),
+                dofs=dofs,
+                vectors=vectors,
+                scales=np.full(count, self.stiffness),
             ),
         )
         self._cache_key = positions.copy()
@@ -314,3 +318,43 @@ def _diagnostics(result: Any, stiffness: float) -> dict[str, Any]:
         "min_volume_ratio": result.min_volume_ratio,
         "tissue_ms": result.compute_ms,
     }
+
+
+@numba.njit(cache=True)
+def _spring_terms(
+    tet_nodes, weights, normals, magnitudes, stiffness, forces, dofs, vectors, rows, cols, values
+):  # pragma: no cover - compiled
+    """The springs' nodal forces, stiffness triplets and rank-one terms (a compiled loop: in
+    numpy, broadcasting a few points' blocks cost ~45 us a call, called twice a step).
+
+    For every point p of a tet with nodes t_a (``tet_nodes`` (k, 4)), barycentric weights
+    w_a, probe normal n and spring force m = ``magnitudes[p]`` [N]: adds w_a m n to
+    ``forces`` (node_count, 3) at t_a. For each point with m > 0 (the r-th such, in point
+    order): its 12 dofs 3 t_a + i and v = (w_a n_i) as row r of ``dofs`` and ``vectors``, and
+    the 144 entries k_s w_a w_b n_i n_j of k_s v v^T at (3 t_a + i, 3 t_b + j), in (a, b, i,
+    j) order, from 144 r on in ``rows``, ``cols`` and ``values``.
+    """
+    row = 0
+    for p in range(tet_nodes.shape[0]):
+        for a in range(4):
+            node = tet_nodes[p, a]
+            w = weights[p, a]
+            for i in range(3):
+                forces[node, i] += w * (magnitudes[p] * normals[p, i])
+        if magnitudes[p] <= 0.0:
+            continue
+        for a in range(4):
+            for i in range(3):
+                dofs[row, 3 * a + i] = 3 * tet_nodes[p, a] + i
+                vectors[row, 3 * a + i] = weights[p, a] * normals[p, i]
+        k = 144 * row
+        for a in range(4):
+            for b in range(4):
+                scale = stiffness * weights[p, a] * weights[p, b]
+                for i in range(3):
+                    for j in range(3):
+                        rows[k] = 3 * tet_nodes[p, a] + i
+                        cols[k] = 3 * tet_nodes[p, b] + j
+                        values[k] = scale * normals[p, i] * normals[p, j]
+                        k += 1
+        row += 1
