@@ -118,6 +118,32 @@ def test_direct_factorization_leaves_out_eliminated_dofs_until_one_is_freed() ->
     assert left_out is not None and np.array_equal(left_out, first & later)
 
 
+@pytest.mark.skipif(not pardiso_available(), reason="the substitution phases are Pardiso's")
+def test_cholesky_halves_give_the_compliance_and_the_solve() -> None:
+    """Forward substitution alone, Y = L^-1 P B, gives B^T A^-1 B as Y^T Y (the paper LM's
+    compliance), and backward(forward(b)) is A^-1 b; an indefinite factor refuses both."""
+    rng = np.random.default_rng(7)
+    matrix = _laplacian_3d(6, 0.05)
+    n = matrix.shape[0]
+    factorization, indefinite = DirectFactorizer().factorize(matrix)
+    assert not indefinite and factorization.is_cholesky
+    columns = rng.standard_normal((n, 5))
+    halves = factorization.forward(np.asfortranarray(columns))
+    expected = columns.T @ np.linalg.solve(matrix.toarray(), columns)
+    np.testing.assert_allclose(halves.T @ halves, expected, rtol=1e-10, atol=1e-12)
+    rhs = rng.standard_normal(n)
+    np.testing.assert_allclose(
+        factorization.backward(factorization.forward(rhs)),
+        np.linalg.solve(matrix.toarray(), rhs),
+        rtol=1e-10,
+        atol=1e-12,
+    )
+    indefinite_factor, indefinite = DirectFactorizer().factorize(_laplacian_3d(5, -1.3))
+    assert indefinite and not indefinite_factor.is_cholesky
+    with pytest.raises(ValueError, match="Cholesky"):
+        indefinite_factor.forward(np.ones(125))
+
+
 def test_cg_cap_is_respected_and_reported() -> None:
     matrix = _laplacian_3d(10, 1e-4)
     rhs = np.ones(matrix.shape[0])

@@ -98,6 +98,7 @@ from tissue.integrator import (
     extrapolated_positions,
     floored_tolerance,
 )
+from tissue.pardiso import PardisoFactorization
 from tissue.solvers import (
     ConstrainedSystem,
     Factorization,
@@ -530,6 +531,20 @@ class LagrangeContact(FEContactModel):
         fit in one batch, else one more solve.
         """
         count = contacts.count
+        if (
+            isinstance(factorization, PardisoFactorization)
+            and factorization.is_cholesky
+            and count <= COLUMN_BATCH
+        ):
+            # As SOFA's LinearSolverConstraintCorrection: one forward substitution per
+            # constraint row, Y = L^-1 H^T, then W = Y^T Y (A = L L^T), and the correction
+            # A^-1 H^T lambda = L^-T (Y lambda) by one backward substitution.
+            halves = factorization.forward(np.asfortranarray(rows.T.toarray()))
+            halves = halves.reshape(-1, count)
+            guess = self._warm[contacts.points]
+            forces, sweeps = self._lcp(scale * (halves.T @ halves), offset, guess)
+            correction = factorization.backward(halves @ forces).reshape(-1)
+            return forces, correction, {"pgs_sweeps": sweeps, "response_rounds": 1}
         compliance = np.empty((count, count))
         transposed = rows.T.tocsc()
         columns = np.zeros((rows.shape[1], 0))
