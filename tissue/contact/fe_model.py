@@ -116,6 +116,24 @@ def constraint_rows(
     return matrix
 
 
+def transpose_product(rows: sp.csr_matrix, values: NDArray[np.float64]) -> NDArray[np.float64]:
+    """rows^T @ values for CSR ``rows`` (k, n) and ``values`` (k,): shape (n,).
+
+    The same sums in the same order as scipy's product with ``rows.T`` (bitwise), without
+    building the transposed matrix (~13 us a call, several calls a step).
+    """
+    out = np.zeros(rows.shape[1])
+    _add_transpose_product(rows.indptr, rows.indices, rows.data, values, out)
+    return out
+
+
+@numba.njit(cache=True)
+def _add_transpose_product(indptr, indices, data, values, out):  # pragma: no cover - compiled
+    for r in range(indptr.shape[0] - 1):
+        for k in range(indptr[r], indptr[r + 1]):
+            out[indices[k]] += data[k] * values[r]
+
+
 @numba.njit(cache=True)
 def _gap_rows(
     tet_nodes, weights, points, normals, constrained, indptr, indices, data

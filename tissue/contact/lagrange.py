@@ -88,7 +88,13 @@ from numpy.typing import NDArray
 
 from tissue.contact.base import ContactMethod
 from tissue.contact.compliance import COLUMN_BATCH, KeptCompliance
-from tissue.contact.fe_model import Contacts, FEContactModel, constraint_rows, detect_contacts
+from tissue.contact.fe_model import (
+    Contacts,
+    FEContactModel,
+    constraint_rows,
+    detect_contacts,
+    transpose_product,
+)
 from tissue.errors import ConfigError, TissueInputError
 from tissue.integrator import (
     LINEAR_SHARE_OF_TOLERANCE,
@@ -557,7 +563,8 @@ class LagrangeContact(FEContactModel):
         if count <= COLUMN_BATCH:
             correction = columns @ forces
         else:
-            correction = np.asarray(factorization.solve(rows.T @ forces)).reshape(-1)
+            spread = transpose_product(rows, forces)
+            correction = np.asarray(factorization.solve(spread)).reshape(-1)
         return forces, correction, {"pgs_sweeps": sweeps, "response_rounds": 1}
 
     def _kept_response(
@@ -649,7 +656,7 @@ class LagrangeContact(FEContactModel):
                 assert under_f is not None
                 increment = under_f
             else:
-                change = system.with_rhs(rows.T @ delta)
+                change = system.with_rhs(transpose_product(rows, delta))
                 load = change.free_rhs_norm()
                 relative = _RESPONSE_TOLERANCE_CAP if load == 0.0 else accuracy / load
                 increment, report = solver.solve(
@@ -725,7 +732,7 @@ class LagrangeContact(FEContactModel):
             )
             dv = free_dv + impulse_per_force * correction
             # The multipliers act as extra right-hand side: include them in the reactions.
-            linear.rhs[:] = linear.rhs + rows.T @ (impulse_per_force * forces)
+            linear.rhs[:] = linear.rhs + transpose_product(rows, impulse_per_force * forces)
         outcome = integrator.paper_finish(x, v, h, linear, dv, _report(indefinite))
         status = sim.commit(outcome, h, start).status
         points, on_probe = self._finish(contacts, forces)
@@ -772,7 +779,7 @@ class LagrangeContact(FEContactModel):
         :meth:`~tissue.integrator.IncrementalPotential.newton_direction`). Returns (step,
         report, the absolute residual asked [N]: what the response solves may leave too).
         """
-        loaded = system.with_load(rows.T @ forces) if forces.size else system
+        loaded = system.with_load(transpose_product(rows, forces)) if forces.size else system
         load = loaded.free_rhs_norm()
         tolerance = floored_tolerance(tolerance, enough, load)
         step, report = self.sim.integrator.solver.solve(
@@ -1111,7 +1118,7 @@ class LagrangeContact(FEContactModel):
             contacts = contacts_new
             rows = constraint_rows(self.surface, contacts, y.size, constrained)
             forces = carried[contacts.points]
-            kkt = gradient - rows.T @ forces
+            kkt = gradient - transpose_product(rows, forces)
             # The integrator's floor on the force scale: a tissue at rest with no load has
             # scale ~ 0, and its round-off gradient must not read as a large relative residual.
             residual = vector_norm(kkt[free]) / max(scale, scale_floor)
@@ -1150,7 +1157,7 @@ class LagrangeContact(FEContactModel):
         new_x = y.reshape(-1, 3)
         new_v = np.zeros_like(v) if cfg.quasi_static else (new_x - x) / h
         reaction = np.zeros(y.size)
-        reaction[dofs] = (gradient - rows.T @ forces)[dofs]
+        reaction[dofs] = (gradient - transpose_product(rows, forces))[dofs]
         # The last evaluation was at y (unless an exact step was undone): its elastic energy
         # and smallest det F serve the step's end, which saves an element pass a step.
         elastic = potential.last_elastic
@@ -1177,7 +1184,7 @@ class LagrangeContact(FEContactModel):
             # How far from static equilibrium the relaxed state is (no inertia).
             static = integrator.incremental_potential(x, v, h, dofs, targets)
             _, static_gradient, static_scale = static.evaluate(y)
-            unbalanced = (static_gradient - rows.T @ forces)[free]
+            unbalanced = (static_gradient - transpose_product(rows, forces))[free]
             static_residual = vector_norm(unbalanced) / max(static_scale, scale_floor)
         diagnostics = {
             "constraints": contacts.count,
