@@ -57,6 +57,7 @@ from tissue.solvers import (
     LinearSolverKind,
     RankOneTerms,
     SolveReport,
+    SymmetricProduct,
     _dot,
     _free_square_norm,
     _spmv,
@@ -286,9 +287,9 @@ class IncrementalPotential:
         self.external = (
             integrator.external_force.reshape(-1) if integrator.external_force is not None else None
         )
-        self.damping = (
-            integrator._rest_stiffness() if not self.quasi and cfg.rayleigh_stiffness > 0 else None
-        )
+        damped = not self.quasi and cfg.rayleigh_stiffness > 0
+        self.damping = integrator._rest_stiffness() if damped else None
+        self._damping_product = integrator._rest_stiffness_product() if damped else None
         # D_K (y - x), reused by every evaluation (zeros without stiffness damping).
         self.damping_product = np.zeros_like(self.x0_flat)
         # (y, elastic energy [J], smallest det F) of the last evaluation, for the step's end.
@@ -328,14 +329,8 @@ class IncrementalPotential:
             scale = max(scale, math.sqrt(_dot(self.external, self.external)))
         if not self.quasi:
             damped = self.damping_product
-            if self.damping is not None:
-                _spmv(
-                    self.damping.indptr,
-                    self.damping.indices,
-                    self.damping.data,
-                    y_flat - self.x0_flat,
-                    damped,
-                )
+            if self._damping_product is not None:
+                self._damping_product(y_flat - self.x0_flat, damped)
             inertia_energy, inertial_square = _add_inertia_and_damping(
                 y_flat,
                 self.inertia_target,
@@ -506,6 +501,7 @@ class ImplicitIntegrator:
         self._force_unit = float(np.max(mu + lam)) * extent * extent
         self._diagonal_positions: NDArray[np.int64] | None = None
         self._rest_stiffness_matrix: sp.csr_matrix | None = None
+        self._rest_product: SymmetricProduct | None = None
         self._keys: NDArray[np.int64] | None = None
         # The last robust step that ended OK: (positions, velocities) it returned, the
         # velocities it started from and its step [s]; a step continuing from exactly those
@@ -860,6 +856,12 @@ class ImplicitIntegrator:
             assert state.stiffness is not None
             self._rest_stiffness_matrix = state.stiffness
         return self._rest_stiffness_matrix
+
+    def _rest_stiffness_product(self) -> SymmetricProduct:
+        """Products with the rest stiffness (robust steps' damping, every evaluation)."""
+        if self._rest_product is None:
+            self._rest_product = SymmetricProduct(self._rest_stiffness())
+        return self._rest_product
 
     def _line_search(self, y, step, gradient, mismatch, evaluate, energy, dofs=None, targets=None):
         """Backtracking Armijo search along ``step``, extrapolating a full step that fell short.

@@ -125,19 +125,6 @@ def _spmv(indptr, indices, data, x, out):  # pragma: no cover - compiled
         out[row] = acc
 
 
-@numba.njit(parallel=True, cache=True)
-def _spmv_dot(indptr, indices, data, x, out):  # pragma: no cover - compiled
-    """out = A x; returns x . out."""
-    total = 0.0
-    for row in numba.prange(indptr.shape[0] - 1):
-        acc = 0.0
-        for k in range(indptr[row], indptr[row + 1]):
-            acc += data[k] * x[indices[k]]
-        out[row] = acc
-        total += x[row] * acc
-    return total
-
-
 @numba.njit(cache=True)
 def _dot(a, b):  # pragma: no cover - compiled
     acc = 0.0
@@ -159,6 +146,15 @@ def _free_square_norm(x, constrained):  # pragma: no cover - compiled
         if not constrained[i]:
             acc += x[i] * x[i]
     return acc
+
+
+@numba.njit(cache=True)
+def _free_entries_zero(x, constrained):  # pragma: no cover - compiled
+    """Whether x is 0 at every dof not constrained."""
+    for i in range(x.shape[0]):  # noqa: SIM110 - numba compiles this loop, not all()
+        if not constrained[i] and x[i] != 0.0:
+            return False
+    return True
 
 
 @numba.njit(parallel=True, cache=True)
@@ -678,6 +674,44 @@ class _NodeBlocks:
         return self.upper_ptr, self.upper_cols, self.upper, self.bounds, self.partial
 
 
+class SymmetricProduct:
+    """y = A x for a symmetric CSR matrix whose values do not change after this is built,
+    through its upper node blocks where it is node-blocked (3x faster than a CSR product
+    here on one thread: 34 against 105 us at 4,126 tets, 245 against 730 us at 26,220),
+    else as CSR.
+
+    Args:
+        matrix: the matrix, (n, n), sorted indices; its values are copied now.
+    """
+
+    def __init__(self, matrix: sp.csr_matrix) -> None:
+        self.matrix = matrix
+        self.blocks = _NodeBlocks.of(matrix)
+        if self.blocks is not None:
+            self.blocks.fill(matrix.data)
+
+    def __call__(self, x: NDArray[np.float64], out: NDArray[np.float64]) -> float:
+        """Write A x to ``out`` (n,); returns x . A x."""
+        matrix = self.matrix
+        upper_ptr, upper_cols, upper, bounds, partial = (
+            self.blocks.arguments() if self.blocks is not None else _NO_BLOCKS
+        )
+        return float(
+            _product(
+                matrix.indptr,
+                matrix.indices,
+                matrix.data,
+                upper_ptr,
+                upper_cols,
+                upper,
+                bounds,
+                partial,
+                x,
+                out,
+            )
+        )
+
+
 # The block arguments of _product when there are no blocks (plain CSR products).
 _NO_BLOCKS = (
     np.zeros(1, dtype=np.int64),
@@ -1107,7 +1141,9 @@ class LinearSolver:
             solved_before = corrected.solved_columns if corrected is not None else 0
             x = _start(system, initial_guess)
             with _threads_for(x.shape[0]):
-                iterations, residual = _factor_pcg(system, kept, x, cap, tolerance)
+                iterations, residual = _factor_pcg(
+                    system, kept, x, cap, tolerance, self._node_blocks(system.matrix)
+                )
             self._excess_iterations += max(iterations - 1, 0)
             if corrected is not None:
                 new_columns = corrected.solved_columns - solved_before
@@ -1123,7 +1159,9 @@ class LinearSolver:
         if preconditioner is not None:
             x = _start(system, initial_guess)
             with _threads_for(x.shape[0]):
-                iterations, residual = _factor_pcg(system, preconditioner, x, cap, tolerance)
+                iterations, residual = _factor_pcg(
+                    system, preconditioner, x, cap, tolerance, self._node_blocks(system.matrix)
+                )
             if residual <= tolerance:
                 return x, SolveReport(spent + iterations, residual, True, True)
         # Not positive definite, or CG still short of the tolerance: an exact factorisation
@@ -1533,19 +1571,29 @@ def _factor_pcg(
     x: NDArray[np.float64],
     max_iterations: int,
     tolerance: float,
+    blocks: _NodeBlocks | None = None,
 ) -> tuple[int, float]:
     """CG preconditioned by an (older) factorisation; constrained dofs stay fixed.
 
     The preconditioner may be a single-precision factorisation, whose solves are not exactly
     a symmetric operator: the flexible (Polak-Ribiere) beta keeps CG converging regardless.
     The residual is checked before each preconditioner solve, so a converged CG never pays
-    for one more.
+    for one more. ``blocks`` (the matrix pattern's node blocks, if it has them) are filled
+    with the matrix's values before the first product and serve the products: filling costs
+    about one block product, which is a third of a CSR one.
     """
     matrix, constrained = system.matrix, system.constrained
     indptr, indices, data = matrix.indptr, matrix.indices, matrix.data
-    b_norm = math.sqrt(_free_square_norm(system.rhs, constrained)) or 1.0
-    r = np.empty_like(x)
-    r_square = _residual(indptr, indices, data, system.rhs, x, constrained, r)
+    b_square = _free_square_norm(system.rhs, constrained)
+    b_norm = math.sqrt(b_square) or 1.0
+    if _free_entries_zero(x, constrained):
+        # x = 0 at the unknowns and the known columns eliminated: r = b there, without a
+        # product with the whole matrix (0.1 ms at 4,126 tets, three solves a robust step).
+        r = np.where(constrained, 0.0, system.rhs)
+        r_square = b_square
+    else:
+        r = np.empty_like(x)
+        r_square = _residual(indptr, indices, data, system.rhs, x, constrained, r)
     residual = math.sqrt(r_square) / b_norm
     r_old = np.zeros_like(x)
     ap = np.empty_like(x)
@@ -1559,7 +1607,12 @@ def _factor_pcg(
             break
         _update_direction(p, z, 0.0 if iterations == 0 else (rz_new - rz_cross) / rz)
         rz = rz_new
-        pap = _spmv_dot(indptr, indices, data, p, ap)
+        if iterations == 0 and blocks is not None:
+            blocks.fill(data)
+        upper_ptr, upper_cols, upper, bounds, partial = (
+            blocks.arguments() if blocks is not None else _NO_BLOCKS
+        )
+        pap = _product(indptr, indices, data, upper_ptr, upper_cols, upper, bounds, partial, p, ap)
         if pap <= 0.0 or not math.isfinite(pap):
             break
         r_square = _cg_update(x, r, r_old, p, ap, rz / pap, constrained)
