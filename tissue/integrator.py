@@ -294,6 +294,10 @@ class IncrementalPotential:
         self.damping_product = np.zeros_like(self.x0_flat)
         # (y, elastic energy [J], smallest det F) of the last evaluation, for the step's end.
         self.last_elastic: tuple[NDArray[np.float64], float, float] | None = None
+        # (z, a copy of it, the elastic state with its exact tangent) of an evaluation that
+        # assembled the tangent for the Hessian that follows it (``evaluate(with_tangent)``).
+        self._tangent_state: tuple[NDArray[np.float64], NDArray[np.float64], ElasticState] | None
+        self._tangent_state = None
 
     def start(self) -> NDArray[np.float64]:
         """The first iterate: the inertial prediction x + h v (x when quasi-static)."""
@@ -308,12 +312,21 @@ class IncrementalPotential:
         nodes are none)."""
         return z_flat if self.frames is None else self.frames.to_world(z_flat)
 
-    def evaluate(self, z_flat: NDArray[np.float64]) -> tuple[float, NDArray[np.float64], float]:
-        """(energy [J], gradient [N] (3N,), force scale [N]) at z [m] (3N,); no tangent."""
+    def evaluate(
+        self, z_flat: NDArray[np.float64], with_tangent: bool = False
+    ) -> tuple[float, NDArray[np.float64], float]:
+        """(energy [J], gradient [N] (3N,), force scale [N]) at z [m] (3N,).
+
+        ``with_tangent``: also assemble the exact (unprojected) elastic tangent there, kept
+        for the next :meth:`hessian_system` at this z. For a start point whose Hessian is
+        surely wanted next (a dynamic step's first iterate): one element pass instead of a
+        force pass and a tangent pass (0.20 ms of 0.72 at 4,126 tets, 1.5 of 5.1 at 26,220).
+        """
         cfg, h = self.integrator.config, self.h
         y_flat = self.world(z_flat)
         y3 = y_flat.reshape(-1, 3)
-        state = self.integrator.elasticity.evaluate(y3, tangent=False)
+        state = self.integrator.elasticity.evaluate(y3, tangent=with_tangent)
+        self._tangent_state = (z_flat, z_flat.copy(), state) if with_tangent else None
         self.last_elastic = (z_flat, state.energy_j, state.min_volume_ratio)
         energy = state.energy_j
         internal = state.forces.reshape(-1)
@@ -354,7 +367,16 @@ class IncrementalPotential:
         """Hessian at z with constrained increments reaching the targets, right-hand side rhs."""
         integrator, cfg, h, m = self.integrator, self.integrator.config, self.h, self.mass
         y3 = self.world(z_flat).reshape(-1, 3)
-        state = integrator.elasticity.evaluate(y3, tangent=True, project_psd=project)
+        kept, self._tangent_state = self._tangent_state, None  # its matrix is used once
+        if (
+            kept is not None
+            and not project
+            and kept[0] is z_flat
+            and np.array_equal(kept[1], z_flat)
+        ):
+            state = kept[2]
+        else:
+            state = integrator.elasticity.evaluate(y3, tangent=True, project_psd=project)
         # A fresh matrix (every evaluation fills a new data array): modified in place.
         matrix = integrator._stiffness_with_terms(state, y3, self.terms)
         if not self.quasi:
@@ -758,11 +780,14 @@ class ImplicitIntegrator:
         guess = self._extrapolated_start(x0, v0, h)
         if guess is not None:
             guess = potential.local(guess)
-        evaluated = evaluate(guess) if guess is not None else None
+        # See the projection rule in the loop: dynamic steps with stiffness damping take the
+        # exact tangent first, so the start's evaluation assembles it too.
+        exact_first = not quasi and cfg.rayleigh_stiffness > 0.0
+        evaluated = evaluate(guess, exact_first) if guess is not None else None
         if guess is not None and evaluated is not None and _finite(evaluated[0], evaluated[1]):
             y = guess
         else:
-            evaluated = evaluate(y)
+            evaluated = evaluate(y, exact_first)
         energy, gradient, scale = evaluated
         # Forces below this are round-off (at rest the residual is pure noise): a fraction of
         # what the stiffest material's moduli exert over the mesh's extent squared.
@@ -774,8 +799,6 @@ class ImplicitIntegrator:
         history: list[float] = []
         converged = False
         iterations = 0
-        # See the projection rule in the loop: dynamic steps with stiffness damping.
-        exact_first = not quasi and cfg.rayleigh_stiffness > 0.0
         while True:
             mismatch = float(np.max(np.abs(targets - y[dofs]))) if dofs.size else 0.0
             relative = math.sqrt(_free_square_norm(gradient, ~free)) / max(scale, scale_floor)
