@@ -538,13 +538,18 @@ class ImplicitIntegrator:
 
     # ------------------------------------------------------------------ public
 
-    def prepare(self) -> None:
+    def prepare(self, fixed_dofs: NDArray[np.int64] | None = None) -> None:
         """Do the first step's one-time work now, when the model is built: load the compiled
         element kernels (numba reads them from its cache on a process's first call: ~0.8 s
-        here), the rest stiffness robust mode's first step needs, and the direct solver's
-        library. Without it all of that landed in the first simulated step."""
+        here), the rest stiffness and its products robust mode's first step needs, the
+        direct solver's library and, in robust mode, its analysis of the stiffness pattern
+        with ``fixed_dofs`` (always constrained, (k,)) left out. Without it all of that
+        landed in the first simulated step."""
         if self.config.mode is IntegrationMode.ROBUST:
-            self._rest_stiffness()
+            rest = self._rest_stiffness()
+            self._rest_stiffness_product()
+            if fixed_dofs is not None:
+                self.solver.analyse(rest, self._dof_mask(fixed_dofs))
         else:  # kept for a first step from rest
             self._keep_end_state(self._rest)
         _ = self.solver.factorizer

@@ -221,7 +221,7 @@ class TissueSimulator:
         self.integrator = ImplicitIntegrator(
             self.elasticity, self.config.integrator_config(), external
         )
-        self.integrator.prepare()
+        self.integrator.prepare(node_dofs(mesh.fixed_nodes))
         self._prescribed_dofs = np.zeros(0, dtype=np.int64)
         self._prescribed_targets = np.zeros(0)
         self._frames: NodeFrames | None = None
