@@ -804,3 +804,44 @@ def test_prefetched_compliance_columns_ride_along_with_the_next_solve(
         dropped.matrix(other, points, normals, constrained), expected, rtol=1e-10
     )
     assert calls == [33]  # the new factor's own batch; the old one's riders never solved
+
+
+def test_gap_rows_and_their_transpose_product_match_scipy(block) -> None:
+    """The gap Jacobian written by the compiled loop is the matrix scipy builds from the
+    triplets (sorted columns, constrained dofs dropped), and rows^T lambda equals scipy's
+    product with the transpose bit for bit; the surface's compiled interpolation equals the
+    einsum it replaced."""
+    import scipy.sparse as sp
+
+    from tissue.contact.fe_model import constraint_rows, detect_contacts, transpose_product
+
+    model = _model("lm", block, SphereProbe(0.01))
+    model.probe.set_pose(np.array([0.0, 0.0, SIZE / 2 - 0.002]), np.array([1.0, 0, 0, 0]))
+    rng = np.random.default_rng(6)
+    x = model.sim.positions + rng.normal(0.0, 1e-4, model.sim.positions.shape)
+    surface = model.surface
+    embedding = surface.embedding
+    np.testing.assert_allclose(
+        surface.positions(x),
+        np.einsum("pk,pkd->pd", embedding.weights, x[embedding.tet_nodes]),
+        rtol=1e-15,
+        atol=1e-18,
+    )
+    contacts = detect_contacts(surface, x, model.probe, 0.002)
+    assert contacts.count > 5
+    constrained = rng.random(x.size) < 0.2
+    rows = constraint_rows(surface, contacts, x.size, constrained)
+    tets, weights = embedding.tet_nodes[contacts.points], embedding.weights[contacts.points]
+    cols = (3 * tets[:, :, None] + np.arange(3)).reshape(-1)
+    values = (weights[:, :, None] * contacts.normal[:, None, :]).reshape(-1)
+    keep = ~constrained[cols]
+    expected = sp.csr_matrix(
+        (values[keep], (np.repeat(np.arange(contacts.count), 12)[keep], cols[keep])),
+        shape=(contacts.count, x.size),
+    )
+    expected.sum_duplicates()
+    np.testing.assert_array_equal(rows.indptr, expected.indptr)
+    np.testing.assert_array_equal(rows.indices, expected.indices)
+    np.testing.assert_array_equal(rows.data, expected.data)
+    forces = rng.random(contacts.count)
+    np.testing.assert_array_equal(transpose_product(rows, forces), expected.T @ forces)

@@ -359,3 +359,68 @@ def test_line_search_keeps_a_good_full_step_and_evaluates_last_where_it_ends() -
     assert len(rising.evaluated) == 3  # the step, its extrapolation, the step again
     np.testing.assert_array_equal(rising.evaluated[-1], point)
     assert point_energy == rising(point)[0]
+
+
+def test_start_evaluation_with_tangent_serves_the_hessian_there_only() -> None:
+    """``evaluate(z, with_tangent=True)`` keeps its exact tangent for the next Hessian at
+    that very z: the same system, bit for bit, as a fresh assembly, and one element pass
+    fewer. A Hessian elsewhere, or projected, or after z changed in place, assembles anew."""
+    size = 0.02
+    mesh = block_mesh((size, size, size / 2), (4, 4, 2), fix="z=min")
+    sim = TissueSimulator(mesh, TissueMaterials(tissue=NeoHookean(E, NU)))
+    dofs, targets = sim.constraints()
+    rng = np.random.default_rng(4)
+    v = rng.normal(0.0, 0.01, sim.velocities.shape)
+    potential = sim.integrator.incremental_potential(sim.positions, v, 0.02, dofs, targets)
+    z = potential.start()
+    passes = 0
+    evaluate = sim.integrator.elasticity.evaluate
+
+    def counted(*args, **kwargs):
+        nonlocal passes
+        passes += 1
+        return evaluate(*args, **kwargs)
+
+    sim.integrator.elasticity.evaluate = counted  # type: ignore[method-assign]
+    plain = potential.evaluate(z)
+    expected = potential.hessian_system(z, -plain[1], project=False).matrix.data.copy()
+    assert passes == 2
+    kept = potential.evaluate(z, with_tangent=True)
+    assert kept[0] == plain[0] and np.array_equal(kept[1], plain[1])
+    system = potential.hessian_system(z, -kept[1], project=False)
+    assert passes == 3  # the Hessian took the kept tangent
+    np.testing.assert_array_equal(system.matrix.data, expected)
+    potential.hessian_system(z, -kept[1], project=False)
+    assert passes == 4  # used once: its matrix is the system's
+    potential.evaluate(z, with_tangent=True)
+    z[0] += 1e-6  # moved in place since
+    potential.hessian_system(z, -kept[1], project=False)
+    assert passes == 6
+    potential.evaluate(z, with_tangent=True)
+    potential.hessian_system(z, -kept[1], project=True)  # projected: not the kept tangent
+    assert passes == 8
+
+
+def test_term_stiffness_outside_the_mesh_pattern_is_an_error() -> None:
+    """A term coupling two nodes of no common tet cannot enter the elastic pattern: named."""
+    from tissue.integrator import TermEvaluation
+
+    size = 0.02
+    mesh = block_mesh((size, size, size / 2), (4, 4, 2), fix="z=min")
+    sim = TissueSimulator(
+        mesh, TissueMaterials(tissue=NeoHookean(E, NU)), SimulationConfig(mode="paper")
+    )
+    far = int(np.argmax(np.linalg.norm(mesh.nodes - mesh.nodes[0], axis=1)))
+
+    class Spring:
+        def evaluate(self, positions):
+            return TermEvaluation(
+                energy_j=0.0,
+                forces=np.zeros_like(positions),
+                stiffness_rows=np.array([0, 3 * far]),
+                stiffness_cols=np.array([3 * far, 0]),
+                stiffness_values=np.array([1.0, 1.0]),
+            )
+
+    with pytest.raises(ValueError, match="outside the mesh's pattern"):
+        sim.step(terms=(Spring(),))

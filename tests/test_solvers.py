@@ -17,6 +17,7 @@ from tissue.solvers import (
     LinearSolver,
     LinearSolverConfig,
     RankOneTerms,
+    SymmetricProduct,
     _NodeBlocks,
 )
 
@@ -417,3 +418,57 @@ def test_reuse_refactorises_once_extra_cg_iterations_cost_a_factorisation() -> N
     assert again == amortised and refreshed_again == refreshed
     for first, second in zip(solutions, solutions_again, strict=True):
         np.testing.assert_array_equal(first, second)
+
+
+def test_symmetric_product_matches_the_csr_product() -> None:
+    """The upper-node-block product equals A x (node-blocked stiffness), and a pattern that
+    is not node-blocked falls back to CSR."""
+    mesh = block_mesh((0.02, 0.02, 0.01), (3, 3, 2), fix="z=min")
+    stiffness = Elasticity(mesh, TissueMaterials()).evaluate(mesh.nodes).stiffness
+    x = np.random.default_rng(2).standard_normal(stiffness.shape[0])
+    product = SymmetricProduct(stiffness)
+    assert product.blocks is not None
+    out = np.empty_like(x)
+    assert product(x, out) == pytest.approx(x @ (stiffness @ x), rel=1e-12)
+    np.testing.assert_allclose(out, stiffness @ x, rtol=1e-12, atol=1e-12 * np.abs(out).max())
+    laplacian = _laplacian_3d(4, 0.1)
+    plain = SymmetricProduct(laplacian)
+    assert plain.blocks is None
+    y = np.ones(laplacian.shape[0])
+    out = np.empty_like(y)
+    plain(y, out)
+    np.testing.assert_array_equal(out, laplacian @ y)
+
+
+@pytest.mark.skipif(not pardiso_available(), reason="the analysis is Pardiso's")
+def test_pattern_analysed_ahead_serves_the_first_kept_factorisation() -> None:
+    """``analyse`` runs the symbolic phase when a model is built; the first ``reuse`` solve
+    then only factorises (no phase 11) and solves correctly."""
+    import tissue.pardiso as pardiso
+
+    rng = np.random.default_rng(8)
+    matrix = _laplacian_3d(6, 0.05)
+    n = matrix.shape[0]
+    fixed = np.zeros(n, dtype=bool)
+    fixed[:20] = True
+    solver = LinearSolver(LinearSolverConfig(kind="reuse"))
+    phases: list[int] = []
+    call = pardiso._pardiso_call
+
+    def counted(*args):
+        phases.append(args[4])
+        return call(*args)
+
+    pardiso._pardiso_call = counted
+    try:
+        solver.analyse(matrix, fixed)
+        assert phases == [11]
+        rhs = rng.standard_normal(n)
+        values = rng.standard_normal(n)
+        x, report = solver.solve(
+            ConstrainedSystem(matrix.copy(), rhs, fixed, values), tolerance=1e-10
+        )
+    finally:
+        pardiso._pardiso_call = call
+    assert 11 not in phases[1:] and 22 in phases
+    np.testing.assert_allclose(x, _reference(matrix, rhs, fixed, values), rtol=1e-8, atol=1e-8)
