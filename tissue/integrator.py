@@ -49,7 +49,7 @@ from numpy.typing import NDArray
 from tissue.choices import Choice
 from tissue.elasticity import Elasticity, ElasticState
 from tissue.errors import ConfigError
-from tissue.frames import NodeFrames
+from tissue.frames import NodeFrames, find_column
 from tissue.solvers import (
     ConstrainedSystem,
     LinearSolver,
@@ -1068,19 +1068,10 @@ def _add_triplets(indptr, indices, data, rows, cols, values):  # pragma: no cove
     (Searching the whole pattern's keys with numpy and ``np.add.at`` took ~0.1 ms for a
     few contact points' 144 entries each at 4,126 tets.)"""
     for k in range(rows.shape[0]):
-        row = rows[k]
-        col = cols[k]
-        lo = indptr[row]
-        hi = indptr[row + 1]
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if indices[mid] < col:
-                lo = mid + 1
-            else:
-                hi = mid
-        if lo == indptr[row + 1] or indices[lo] != col:
+        position = find_column(indices, indptr[rows[k]], indptr[rows[k] + 1], cols[k])
+        if position < 0:
             return False
-        data[lo] += values[k]
+        data[position] += values[k]
     return True
 
 
