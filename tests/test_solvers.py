@@ -472,3 +472,53 @@ def test_pattern_analysed_ahead_serves_the_first_kept_factorisation() -> None:
         pardiso._pardiso_call = call
     assert 11 not in phases[1:] and 22 in phases
     np.testing.assert_allclose(x, _reference(matrix, rhs, fixed, values), rtol=1e-8, atol=1e-8)
+
+
+def test_reuse_products_follow_a_matrix_modified_in_place() -> None:
+    """Systems sharing a matrix share its filled node blocks (one fill for the three solves
+    of a robust LM step); a matrix changed in place and declared with ``matrix_modified``
+    is filled again, so the next solve is of the new matrix."""
+    rng = np.random.default_rng(9)
+    mesh = block_mesh((0.02, 0.02, 0.01), (4, 4, 2), fix="z=min")
+    stiffness = Elasticity(mesh, TissueMaterials()).evaluate(mesh.nodes).stiffness
+    matrix = stiffness.copy()  # the node-blocked pattern kept (a sparse sum prunes zeros)
+    n = matrix.shape[0]
+    row_of_entry = np.repeat(np.arange(n), np.diff(matrix.indptr))
+    matrix.data[matrix.indices == row_of_entry] += 50.0
+    constrained = np.zeros(n, dtype=bool)
+    constrained[:12] = True
+    values = rng.standard_normal(n)
+    solver = LinearSolver(LinearSolverConfig(kind="reuse"))
+    system = ConstrainedSystem(matrix.copy(), rng.standard_normal(n), constrained, values)
+    fills = 0
+    fill = _NodeBlocks.fill
+
+    def counted(self, data):
+        nonlocal fills
+        fills += 1
+        return fill(self, data)
+
+    _NodeBlocks.fill = counted  # type: ignore[method-assign]
+    try:
+        solver.solve(system, tolerance=1e-10)  # keeps a factor of this matrix
+        shifted = matrix.copy()
+        shifted.data[shifted.indices == row_of_entry] += 5.0
+        for rhs in rng.standard_normal((2, n)):
+            x, _ = solver.solve(system.with_rhs(rhs), initial_guess=rhs, tolerance=1e-10)
+            np.testing.assert_allclose(
+                x, _reference(matrix, rhs, constrained, np.zeros(n)), rtol=1e-7, atol=1e-9
+            )
+        assert fills == 1
+        # Change the eliminated matrix in place (the diagonal of the free dofs), and say so.
+        system.matrix.data[
+            (system.matrix.indices == row_of_entry) & ~constrained[row_of_entry]
+        ] += 5.0
+        system.matrix_modified()
+        rhs = rng.standard_normal(n)
+        x, _ = solver.solve(system.with_rhs(rhs), initial_guess=rhs, tolerance=1e-10)
+        np.testing.assert_allclose(
+            x, _reference(shifted, rhs, constrained, np.zeros(n)), rtol=1e-7, atol=1e-9
+        )
+        assert fills == 2
+    finally:
+        _NodeBlocks.fill = fill  # type: ignore[method-assign]

@@ -34,7 +34,7 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -542,6 +542,10 @@ class ConstrainedSystem:
     ) -> None:
         self.rank_one = rank_one
         self.frames = frames
+        # Names the matrix's current values (systems derived with ``with_rhs`` / ``with_load``
+        # share it): a solver keeps what it derived from them, such as CG's node blocks,
+        # until :meth:`matrix_modified` says they changed.
+        self.values_token = object()
         values = np.where(constrained, values, 0.0)
         # Move the known columns to the right-hand side before eliminating them (by symmetry,
         # the rows of the nonzero known values: a few probe nodes instead of the whole matrix).
@@ -586,11 +590,18 @@ class ConstrainedSystem:
         matrix.data[positions] = values
         return matrix, self.constrained & ~framed
 
+    def matrix_modified(self) -> None:
+        """Say that the matrix's values were changed in place (after construction): what a
+        solver derived from the old ones is not used again. Systems derived later share
+        the new token; those derived before keep the old one and must not be solved."""
+        self.values_token = object()
+
     def with_rhs(self, rhs: NDArray[np.float64]) -> ConstrainedSystem:
         """The same (already eliminated) matrix with right-hand side ``rhs`` and the known
         dofs held at zero, shape (n,): A x = rhs for the increment a load adds."""
         other = object.__new__(ConstrainedSystem)
         other.matrix = self.matrix
+        other.values_token = self.values_token
         other.rank_one = self.rank_one
         other.frames = self.frames
         other._framed_entries = self._framed_entries
@@ -606,6 +617,7 @@ class ConstrainedSystem:
         the known dofs kept at their values, shape (n,)."""
         other = object.__new__(ConstrainedSystem)
         other.matrix = self.matrix
+        other.values_token = self.values_token
         other.rank_one = self.rank_one
         other.frames = self.frames
         other._framed_entries = self._framed_entries
@@ -957,6 +969,8 @@ class LinearSolver:
         self.kept_indefinite = False
         # (indices, indptr) of the last pattern CG saw, and its node blocks (or None).
         self._blocks: tuple[NDArray, NDArray, _NodeBlocks | None] | None = None
+        # (those blocks, the values token of the system they were last filled from).
+        self._filled_for: tuple[_NodeBlocks, object] | None = None
         # Amortised refresh of the kept factorisation (``reuse``, see _solve_reuse): the CG
         # iterations beyond the first of each solve since it was computed, plus what its
         # rank-one corrections' columns cost (in iterations).
@@ -1116,13 +1130,25 @@ class LinearSolver:
             self._blocks = cached
         return cached[2]
 
+    def _filled_blocks(self, system: ConstrainedSystem) -> _NodeBlocks | None:
+        """The node blocks of ``system``'s matrix holding its values (filled once for the
+        systems sharing its values token: a robust LM step solves three with one matrix,
+        and filling them each time took more than the products they served), or None if
+        its pattern is not node-blocked."""
+        blocks = self._node_blocks(system.matrix)
+        if blocks is None:
+            return None
+        filled = self._filled_for
+        if filled is None or filled[0] is not blocks or filled[1] is not system.values_token:
+            blocks.fill(system.matrix.data)
+            self._filled_for = (blocks, system.values_token)
+        return blocks
+
     def _solve_cg(self, system, initial_guess, tolerance):
         x = _start(system, initial_guess)
         matrix = system.matrix
         inv_diag = np.empty(matrix.shape[0])
-        blocks = self._node_blocks(matrix)
-        if blocks is not None:
-            blocks.fill(matrix.data)
+        blocks = self._filled_blocks(system)
         if blocks is None or not _block_inverse_diagonal(
             blocks.upper_ptr, blocks.upper_cols, blocks.upper, inv_diag
         ):
@@ -1171,7 +1197,7 @@ class LinearSolver:
             x = _start(system, initial_guess)
             with _threads_for(x.shape[0]):
                 iterations, residual = _factor_pcg(
-                    system, kept, x, cap, tolerance, self._node_blocks(system.matrix)
+                    system, kept, x, cap, tolerance, lambda: self._filled_blocks(system)
                 )
             self._excess_iterations += max(iterations - 1, 0)
             if corrected is not None:
@@ -1189,7 +1215,7 @@ class LinearSolver:
             x = _start(system, initial_guess)
             with _threads_for(x.shape[0]):
                 iterations, residual = _factor_pcg(
-                    system, preconditioner, x, cap, tolerance, self._node_blocks(system.matrix)
+                    system, preconditioner, x, cap, tolerance, lambda: self._filled_blocks(system)
                 )
             if residual <= tolerance:
                 return x, SolveReport(spent + iterations, residual, True, True)
@@ -1600,16 +1626,16 @@ def _factor_pcg(
     x: NDArray[np.float64],
     max_iterations: int,
     tolerance: float,
-    blocks: _NodeBlocks | None = None,
+    filled_blocks: Callable[[], _NodeBlocks | None] = lambda: None,
 ) -> tuple[int, float]:
     """CG preconditioned by an (older) factorisation; constrained dofs stay fixed.
 
     The preconditioner may be a single-precision factorisation, whose solves are not exactly
     a symmetric operator: the flexible (Polak-Ribiere) beta keeps CG converging regardless.
     The residual is checked before each preconditioner solve, so a converged CG never pays
-    for one more. ``blocks`` (the matrix pattern's node blocks, if it has them) are filled
-    with the matrix's values before the first product and serve the products: filling costs
-    about one block product, which is a third of a CSR one.
+    for one more. ``filled_blocks`` gives the matrix's node blocks holding its values (None
+    if it has none), asked for at the first product only: block products cost a third of
+    CSR ones, and a solve that needs no product needs no filling.
     """
     matrix, constrained = system.matrix, system.constrained
     indptr, indices, data = matrix.indptr, matrix.indices, matrix.data
@@ -1623,8 +1649,8 @@ def _factor_pcg(
         r = np.where(constrained, 0.0, system.rhs)
         r_square = b_square
     else:
+        blocks = filled_blocks()
         if blocks is not None:
-            blocks.fill(data)
             upper_ptr, upper_cols, upper, bounds, partial = blocks.arguments()
         _product(indptr, indices, data, upper_ptr, upper_cols, upper, bounds, partial, x, ap)
         r = np.empty_like(x)
@@ -1641,9 +1667,10 @@ def _factor_pcg(
             break
         _update_direction(p, z, 0.0 if iterations == 0 else (rz_new - rz_cross) / rz)
         rz = rz_new
-        if blocks is not None and upper_ptr is _NO_BLOCKS[0]:
-            blocks.fill(data)  # once, before the first product
-            upper_ptr, upper_cols, upper, bounds, partial = blocks.arguments()
+        if iterations == 0 and upper_ptr is _NO_BLOCKS[0]:
+            blocks = filled_blocks()
+            if blocks is not None:
+                upper_ptr, upper_cols, upper, bounds, partial = blocks.arguments()
         pap = _product(indptr, indices, data, upper_ptr, upper_cols, upper, bounds, partial, p, ap)
         if pap <= 0.0 or not math.isfinite(pap):
             break

@@ -832,6 +832,7 @@ class LagrangeContact(FEContactModel):
         _add_point_blocks(
             matrix.indptr, matrix.indices, matrix.data, constrained, nodes, weights, blocks
         )
+        system.matrix_modified()
         return pressing, rho
 
     @staticmethod
