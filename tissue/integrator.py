@@ -816,7 +816,10 @@ class ImplicitIntegrator:
         # the matrix has barely changed, and the residual stays the true gradient's, so a
         # chord that falls short costs an iteration, not accuracy. Only with a kept
         # factorisation (``reuse``), which solves it without refactorising. Measured on
-        # ``bench peer``'s press at 4,141 tets: see the commit that added it.
+        # ``bench peer``'s press (median / mean step): penalty at 4,126 tets 5.04 / 4.74 ->
+        # 3.82 / 4.17 ms, at 26,220 tets 26.5 / 29.6 -> 20.8 / 26.2 ms; prescribed at 26,220
+        # 26.6 / 28.8 -> 23.9 / 27.6 ms; forces within 6e-6 N. At a tight tolerance (1e-6)
+        # a chord may cost an iteration where the start was poor (tests/test_integrator.py).
         chord_allowed = exact_first and self.solver.config.kind is LinearSolverKind.REUSE
         chord: ConstrainedSystem | None = None
         while True:
