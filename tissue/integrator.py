@@ -60,7 +60,6 @@ from tissue.solvers import (
     SymmetricProduct,
     _dot,
     _free_square_norm,
-    _spmv,
 )
 from tissue.status import SEVERITY, StepStatus, worst
 
@@ -650,7 +649,7 @@ class ImplicitIntegrator:
             # Rayleigh damping is the tissue's: it uses the elastic stiffness only, never the
             # contact springs (damping them would make the contact viscous).
             elastic_v = np.empty_like(v_flat)
-            _spmv(elastic.indptr, elastic.indices, elastic.data, v_flat, elastic_v)
+            self.solver.product(elastic, v_flat, elastic_v)
             # The terms' stiffness is a few entries per contact point: (K + K_terms) v as
             # K v plus their product, not a second product with the whole matrix.
             stiffness_v = elastic_v

@@ -1130,6 +1130,32 @@ class LinearSolver:
             self._blocks = cached
         return cached[2]
 
+    def product(
+        self, matrix: sp.csr_matrix, x: NDArray[np.float64], out: NDArray[np.float64]
+    ) -> None:
+        """out = A x for a symmetric CSR ``matrix`` (n, n) about to become a system's: through
+        the node blocks CG keeps for its pattern (filled from it now; with the product, 62
+        against 105 us for CSR at 4,126 tets), else as CSR."""
+        blocks = self._node_blocks(matrix)
+        if blocks is None:
+            _spmv(matrix.indptr, matrix.indices, matrix.data, x, out)
+            return
+        blocks.fill(matrix.data)
+        self._filled_for = None  # holding this matrix's values, not a system's
+        upper_ptr, upper_cols, upper, bounds, partial = blocks.arguments()
+        _product(
+            matrix.indptr,
+            matrix.indices,
+            matrix.data,
+            upper_ptr,
+            upper_cols,
+            upper,
+            bounds,
+            partial,
+            x,
+            out,
+        )
+
     def _filled_blocks(self, system: ConstrainedSystem) -> _NodeBlocks | None:
         """The node blocks of ``system``'s matrix holding its values (filled once for the
         systems sharing its values token: a robust LM step solves three with one matrix,
