@@ -431,6 +431,10 @@ def test_symmetric_product_matches_the_csr_product() -> None:
     out = np.empty_like(x)
     assert product(x, out) == pytest.approx(x @ (stiffness @ x), rel=1e-12)
     np.testing.assert_allclose(out, stiffness @ x, rtol=1e-12, atol=1e-12 * np.abs(out).max())
+    solver = LinearSolver(LinearSolverConfig(kind="cg"))
+    by_solver = np.empty_like(x)
+    solver.product(stiffness, x, by_solver)  # through the solver's own blocks
+    np.testing.assert_array_equal(by_solver, out)
     laplacian = _laplacian_3d(4, 0.1)
     plain = SymmetricProduct(laplacian)
     assert plain.blocks is None
