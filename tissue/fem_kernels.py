@@ -745,6 +745,23 @@ def block_contributions(
     return ptr, codes
 
 
+@nb.njit(cache=True, inline="always")
+def _store_block(data, pos, stride, a00, a01, a02, a10, a11, a12, a20, a21, a22):
+    """Store the 3x3 block (a_ij) at ``pos`` of a node row whose CSR rows are ``stride``
+    entries apart (the layout of the module docstring)."""
+    data[pos] = a00
+    data[pos + 1] = a01
+    data[pos + 2] = a02
+    pos += stride
+    data[pos] = a10
+    data[pos + 1] = a11
+    data[pos + 2] = a12
+    pos += stride
+    data[pos] = a20
+    data[pos + 1] = a21
+    data[pos + 2] = a22
+
+
 @nb.njit(parallel=True, cache=True, fastmath=False)
 def gather_elements(
     block_ptr: np.ndarray,
@@ -865,33 +882,13 @@ def gather_elements(
                     k21 += c21
                     k22 += c22
                 pos = row_base + 3 * (q - first)
-                data[pos] = k00
-                data[pos + 1] = k01
-                data[pos + 2] = k02
-                pos += stride
-                data[pos] = k10
-                data[pos + 1] = k11
-                data[pos + 2] = k12
-                pos += stride
-                data[pos] = k20
-                data[pos + 1] = k21
-                data[pos + 2] = k22
+                _store_block(data, pos, stride, k00, k01, k02, k10, k11, k12, k20, k21, k22)
                 if c > b:
                     m = mirror[q]
                     m_first = block_ptr[c]
-                    m_stride = 3 * (block_ptr[c + 1] - m_first)
                     pos = 9 * m_first + 3 * (m - m_first)
-                    data[pos] = k00
-                    data[pos + 1] = k10
-                    data[pos + 2] = k20
-                    pos += m_stride
-                    data[pos] = k01
-                    data[pos + 1] = k11
-                    data[pos + 2] = k21
-                    pos += m_stride
-                    data[pos] = k02
-                    data[pos + 1] = k12
-                    data[pos + 2] = k22
+                    m_stride = 3 * (block_ptr[c + 1] - m_first)
+                    _store_block(data, pos, m_stride, k00, k10, k20, k01, k11, k21, k02, k12, k22)
             forces[b, 0] = fx
             forces[b, 1] = fy
             forces[b, 2] = fz
