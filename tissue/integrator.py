@@ -867,17 +867,17 @@ class ImplicitIntegrator:
             factorizations += int(report.factorized)
             if not np.all(np.isfinite(step)):
                 return self._failed(x0, v0, StepStatus.SOLVER_FAILED)
-            full = y + step
-            if mismatch > 0.0:
-                full[dofs] = targets
             found = self._line_search(y, step, gradient, mismatch, evaluate, energy, dofs, targets)
             if found is None:
                 return self._failed(x0, v0, StepStatus.DIVERGED)
             # The next iteration may keep this matrix if this one was assembled here (not a
             # chord, not the projected fallback) and its full step was taken as it is.
-            took_full = np.array_equal(found[0], full)
-            keep = chord_allowed and not chord_step and not fell_back and took_full
-            chord = system if keep else None
+            chord = None
+            if chord_allowed and not chord_step and not fell_back:
+                full = y + step
+                if mismatch > 0.0:
+                    full[dofs] = targets
+                chord = system if np.array_equal(found[0], full) else None
             y, energy, gradient, scale = found
         new_x = potential.world(y).reshape(-1, 3)
         new_v = np.zeros_like(v0) if quasi else (new_x - x0) / h

@@ -221,11 +221,11 @@ class TissueSimulator:
         self.integrator = ImplicitIntegrator(
             self.elasticity, self.config.integrator_config(), external
         )
-        self.integrator.prepare(node_dofs(mesh.fixed_nodes))
+        self._fixed_dofs = node_dofs(mesh.fixed_nodes)
+        self.integrator.prepare(self._fixed_dofs)
         self._prescribed_dofs = np.zeros(0, dtype=np.int64)
         self._prescribed_targets = np.zeros(0)
         self._frames: NodeFrames | None = None
-        self._fixed_dofs = node_dofs(mesh.fixed_nodes)
         self._checked_dofs: NDArray[np.int64] | None = None
         self.reset()
 
