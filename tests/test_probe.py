@@ -473,6 +473,12 @@ def test_wrench_about_origin():
     force, torque = probe.wrench_about_origin(points[:1], [[0.0, 0.0, 2.0]])
     np.testing.assert_allclose(force, [0.0, 0.0, 2.0])
     np.testing.assert_allclose(torque, [0.0, -0.2, 0.0], atol=1e-12)  # r x f = x x z = -y
+    # Many points: the sum of (p - c) x f, bit for bit as np.cross gives it.
+    rng = np.random.default_rng(3)
+    points, forces = rng.normal(size=(50, 3)), rng.normal(size=(50, 3))
+    force, torque = probe.wrench_about_origin(points, forces)
+    np.testing.assert_array_equal(force, forces.sum(axis=0))
+    np.testing.assert_array_equal(torque, np.cross(points - probe.position_world, forces).sum(0))
 
 
 def test_looking_along_places_the_face_and_presses_along_the_direction():
