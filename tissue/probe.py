@@ -947,9 +947,10 @@ def matrix_to_quat(rotation: ArrayLike) -> NDArray[np.float64]:
 
 def _normalised_quat(quat_wxyz: ArrayLike) -> NDArray[np.float64]:
     quat = np.asarray(quat_wxyz, dtype=np.float64).ravel()
-    if quat.shape != (4,) or not np.all(np.isfinite(quat)):
+    if quat.shape != (4,) or not np.isfinite(quat).all():
         raise ConfigError(f"a quaternion must be 4 finite numbers (w, x, y, z); got {quat_wxyz!r}")
-    norm = float(np.linalg.norm(quat))
+    # What np.linalg.norm computes for a vector (the same bits), without its Python layers.
+    norm = math.sqrt(float(quat.dot(quat)))
     if norm < 1e-12:
         raise ConfigError(
             f"quaternion {quat_wxyz!r} is zero and has no rotation; the identity is (1, 0, 0, 0)"

@@ -447,7 +447,10 @@ class TissueSimulator:
         fixed = self._fixed_dofs
         prescribed = self._prescribed_dofs
         if prescribed.size:
-            fixed = fixed[~np.isin(fixed, prescribed)]  # a prescribed target overrides "fixed"
+            # A prescribed target overrides "fixed" (a mask: np.isin sorts, every step).
+            overridden = np.zeros(self.mesh.dof_count, dtype=bool)
+            overridden[prescribed] = True
+            fixed = fixed[~overridden[fixed]]
         dofs = np.concatenate([fixed, prescribed])
         targets = np.concatenate([self.mesh.nodes.reshape(-1)[fixed], self._prescribed_targets])
         return dofs, targets
