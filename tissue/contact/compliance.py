@@ -76,8 +76,7 @@ class KeptCompliance:
         self._claim(update, normals[stale], constrained.size)
         for start in range(0, update.size, COLUMN_BATCH):
             chunk = update[start : start + COLUMN_BATCH]
-            embedding = self._projected_embedding(chunk, constrained)
-            columns = factorization.solve(np.asfortranarray(embedding.T.toarray()))
+            columns = factorization.solve(self._projected_columns(chunk, constrained))
             self._store(factorization, chunk, constrained, np.asarray(columns))
         slots = self.slot[points]
         return self.entries[np.ix_(slots, slots)]
@@ -107,7 +106,7 @@ class KeptCompliance:
             return
         update = points[chosen]
         self._claim(update, normals[chosen], constrained.size)
-        embedding = self._projected_embedding(update, constrained)
+        embedding = self._projected_columns(update, constrained)
         self._riding, self._flush = True, flush
 
         def receive(columns: NDArray[np.float64]) -> None:
@@ -115,7 +114,7 @@ class KeptCompliance:
                 self._riding, self._flush = False, _nothing
             self._store(factorization, update, constrained, columns)
 
-        ride_along(embedding.T.toarray(), receive)
+        ride_along(embedding, receive)
 
     def _own(self, factorization: Factorization) -> None:
         """Start afresh for a new F (its columns still riding on the old one are dropped)."""
@@ -182,10 +181,12 @@ class KeptCompliance:
         _add_scaled_rows(self.columns, self.slot[points], change, out)
         return out
 
-    def _projected_embedding(
+    def _embedding_parts(
         self, points: NDArray[np.int64], constrained: NDArray[np.bool_]
-    ) -> sp.csr_matrix:
-        """Rows n_p^T E_p of ``points`` with their kept normals, (k, dofs)."""
+    ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+        """The entries of the rows n_p^T E_p of ``points`` with their kept normals: (row,
+        dof, value) each, constrained dofs left out. Each is one weight times one normal
+        component, and no two share a (row, dof): a tet's four nodes differ."""
         count = points.size
         nodes = self.surface.embedding.tet_nodes[points]  # (k, 4)
         weights = self.surface.embedding.weights[points]
@@ -194,11 +195,27 @@ class KeptCompliance:
         cols = 3 * nodes[:, :, None] + np.arange(3)
         values = weights[:, :, None] * normals[:, None, :]
         keep = ~constrained[cols]
-        matrix = sp.csr_matrix(
-            (values[keep], (rows[keep], cols[keep])), shape=(count, constrained.size)
-        )
+        return rows[keep], cols[keep], values[keep]
+
+    def _projected_embedding(
+        self, points: NDArray[np.int64], constrained: NDArray[np.bool_]
+    ) -> sp.csr_matrix:
+        """Rows n_p^T E_p of ``points`` with their kept normals, (k, dofs)."""
+        rows, cols, values = self._embedding_parts(points, constrained)
+        matrix = sp.csr_matrix((values, (rows, cols)), shape=(points.size, constrained.size))
         matrix.sum_duplicates()
         return matrix
+
+    def _projected_columns(
+        self, points: NDArray[np.int64], constrained: NDArray[np.bool_]
+    ) -> NDArray[np.float64]:
+        """The transpose of :meth:`_projected_embedding`, dense and column-major, (dofs, k):
+        the right-hand sides of the points' solves, written entry by entry (a sparse matrix
+        and its dense transpose took ~150 Python-level calls a step)."""
+        rows, cols, values = self._embedding_parts(points, constrained)
+        dense = np.zeros((constrained.size, points.size), order="F")
+        dense[cols, rows] = values
+        return dense
 
     def _store(
         self,

@@ -92,6 +92,7 @@ from tissue.contact.fe_model import (
     Contacts,
     FEContactModel,
     constraint_rows,
+    dense_transpose,
     detect_contacts,
     transpose_product,
 )
@@ -545,18 +546,17 @@ class LagrangeContact(FEContactModel):
             # As SOFA's LinearSolverConstraintCorrection: one forward substitution per
             # constraint row, Y = L^-1 H^T, then W = Y^T Y (A = L L^T), and the correction
             # A^-1 H^T lambda = L^-T (Y lambda) by one backward substitution.
-            halves = factorization.forward(np.asfortranarray(rows.T.toarray()))
+            halves = factorization.forward(dense_transpose(rows))
             halves = halves.reshape(-1, count)
             guess = self._warm[contacts.points]
             forces, sweeps = self._lcp(scale * (halves.T @ halves), offset, guess)
             correction = factorization.backward(halves @ forces).reshape(-1)
             return forces, correction, {"pgs_sweeps": sweeps, "response_rounds": 1}
         compliance = np.empty((count, count))
-        transposed = rows.T.tocsc()
         columns = np.zeros((rows.shape[1], 0))
         for start in range(0, count, COLUMN_BATCH):
             stop = min(count, start + COLUMN_BATCH)
-            block = np.asfortranarray(transposed[:, start:stop].toarray())
+            block = dense_transpose(rows[start:stop])
             columns = np.asarray(factorization.solve(block)).reshape(rows.shape[1], -1)
             compliance[:, start:stop] = rows @ columns
         forces, sweeps = self._lcp(scale * compliance, offset, self._warm[contacts.points])
