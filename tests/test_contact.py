@@ -809,11 +809,16 @@ def test_prefetched_compliance_columns_ride_along_with_the_next_solve(
 def test_gap_rows_and_their_transpose_product_match_scipy(block) -> None:
     """The gap Jacobian written by the compiled loop is the matrix scipy builds from the
     triplets (sorted columns, constrained dofs dropped), and rows^T lambda equals scipy's
-    product with the transpose bit for bit; the surface's compiled interpolation equals the
-    einsum it replaced."""
+    product with the transpose bit for bit, as do the dense right-hand sides LM solves for;
+    the surface's compiled interpolation equals the einsum it replaced."""
     import scipy.sparse as sp
 
-    from tissue.contact.fe_model import constraint_rows, detect_contacts, transpose_product
+    from tissue.contact.fe_model import (
+        constraint_rows,
+        dense_transpose,
+        detect_contacts,
+        transpose_product,
+    )
 
     model = _model("lm", block, SphereProbe(0.01))
     model.probe.set_pose(np.array([0.0, 0.0, SIZE / 2 - 0.002]), np.array([1.0, 0, 0, 0]))
@@ -845,3 +850,16 @@ def test_gap_rows_and_their_transpose_product_match_scipy(block) -> None:
     np.testing.assert_array_equal(rows.data, expected.data)
     forces = rng.random(contacts.count)
     np.testing.assert_array_equal(transpose_product(rows, forces), expected.T @ forces)
+    dense = dense_transpose(rows)
+    assert dense.flags.f_contiguous
+    np.testing.assert_array_equal(dense, expected.T.toarray())
+    # The compliance cache's right-hand sides: the same columns, dense, as its sparse rows.
+    cache = model._compliance
+    cache._claim(contacts.points, contacts.normal, x.size)
+    np.testing.assert_array_equal(
+        cache._projected_columns(contacts.points, constrained),
+        cache._projected_embedding(contacts.points, constrained).T.toarray(),
+    )
+    np.testing.assert_array_equal(
+        cache._projected_columns(contacts.points, constrained), expected.T.toarray()
+    )
