@@ -79,7 +79,9 @@ class KeptCompliance:
             columns = factorization.solve(self._projected_columns(chunk, constrained))
             self._store(factorization, chunk, constrained, np.asarray(columns))
         slots = self.slot[points]
-        return self.entries[np.ix_(slots, slots)]
+        # As np.ix_ takes it (C order, so that products with it sum as before), without its
+        # Python layers.
+        return self.entries.take(slots, axis=0).take(slots, axis=1)
 
     def prefetch(
         self,

@@ -513,9 +513,9 @@ class LagrangeContact(FEContactModel):
     ) -> tuple[NDArray[np.float64], int]:
         """PGS on compliance (symmetrised, regularised) from ``guess``: (forces, sweeps)."""
         compliance = 0.5 * (compliance + compliance.T)
-        diagonal = np.diag(compliance)
+        diagonal = compliance.diagonal()
         epsilon = self.params.regularization * (float(diagonal.mean()) if diagonal.size else 0.0)
-        compliance[np.diag_indices_from(compliance)] += max(epsilon, 1e-300)
+        compliance.flat[:: compliance.shape[0] + 1] += max(epsilon, 1e-300)  # the diagonal
         forces = np.array(guess, dtype=np.float64)
         sweeps, _ = projected_gauss_seidel(
             compliance, offset, forces, self.params.pgs_tolerance_m, self.params.pgs_max_iterations
