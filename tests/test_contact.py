@@ -14,6 +14,7 @@ from tissue.contact.penalty import PenaltyParams
 from tissue.contact.placement import first_contact_pose
 from tissue.contact.prescribed import PrescribedParams
 from tissue.errors import ConfigError, TissueInputError
+from tissue.integrator import ChordHandOver
 from tissue.material import NeoHookean, TissueMaterials
 from tissue.pardiso import pardiso_available
 from tissue.probe import BoxProbe, Probe, SphereProbe, linear_probe
@@ -357,6 +358,51 @@ def test_dynamic_robust_lagrange_steps_take_the_exact_tangent(block) -> None:
     assert result.force_world[2] == pytest.approx(tight.force_world[2], rel=1e-4)
     _, iterations, exact = press(rayleigh_stiffness=0.0)
     assert sum(exact) == 0 and sum(iterations) > 0
+
+
+def test_dynamic_robust_lagrange_hands_a_converged_matrix_to_the_next_step(
+    block, monkeypatch
+) -> None:
+    """A dynamic robust LM step that converged in one exact iteration hands its matrix to the
+    next, whose first iteration takes it as a chord and assembles no tangent; the press
+    lands where one assembling every step does (both converge to the Newton tolerance)."""
+    shape = SphereProbe(0.01)
+    materials = TissueMaterials(tissue=NeoHookean(E, 0.45))
+
+    def press():
+        config = SimulationConfig(mode="robust")
+        model = make_contact_model("lm", block, shape, materials=materials, config=config)
+        elasticity = model.sim.integrator.elasticity
+        evaluate = elasticity.evaluate
+        tangents = []
+
+        def counting(positions, *, tangent=True, project_psd=False):
+            tangents.append(tangent)
+            return evaluate(positions, tangent=tangent, project_psd=project_psd)
+
+        monkeypatch.setattr(elasticity, "evaluate", counting)
+        probe = Probe.looking_along(
+            shape, np.array([0.0, 0.0, SIZE / 2 + 1e-4]), np.array([0.0, 0.0, -1.0])
+        )
+        handed, iterations = [], 0
+        for i in range(1, 31):
+            result = model.step(probe.position_world - [0.0, 0.0, 2e-4 * i], probe.quat_wxyz)
+            assert result.status is StepStatus.OK, (i, result.diagnostics)
+            handed.append(result.diagnostics["chord_from_last_step"])
+            iterations += result.diagnostics["iterations"]
+        return result, handed, sum(tangents), iterations
+
+    result, handed, tangents, iterations = press()
+    # Measured: the sphere's contact grows for 20 steps (two iterations each), then 9 of
+    # the last 10 steps took their predecessor's matrix.
+    assert not handed[0] and sum(handed) >= 5
+    assert tangents < iterations  # chord iterations assembled nothing
+    monkeypatch.setattr(ChordHandOver, "record", lambda self, *args: None)
+    fresh, handed_none, fresh_tangents, _ = press()
+    assert not any(handed_none)
+    assert fresh_tangents > tangents
+    assert result.force_world[2] == pytest.approx(fresh.force_world[2], rel=1e-4)
+    np.testing.assert_allclose(result.landmarks, fresh.landmarks, rtol=0, atol=1e-8)
 
 
 @pytest.mark.parametrize(("quasi", "depth_m", "steps"), [(False, 0.011, 6), (True, 0.009, 9)])

@@ -6,12 +6,15 @@ import warnings
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from tissue.block import block_mesh
+from tissue.integrator import CHORD_BACKOFF_MAX_STEPS, ChordHandOver
 from tissue.material import NeoHookean, TissueMaterials
 from tissue.mesh import node_dofs
 from tissue.mesh_io import nodes_on_plane
 from tissue.simulator import SimulationConfig, TissueSimulator, settle
+from tissue.solvers import ConstrainedSystem
 from tissue.status import StepStatus
 
 E, NU = 3000.0, 0.45
@@ -424,3 +427,42 @@ def test_term_stiffness_outside_the_mesh_pattern_is_an_error() -> None:
 
     with pytest.raises(ValueError, match="outside the mesh's pattern"):
         sim.step(terms=(Spring(),))
+
+
+def test_chord_hand_over_backs_off_after_chords_that_needed_more_iterations() -> None:
+    """ChordHandOver: a step converged in one full exact iteration hands its matrix on; a
+    handed matrix is taken once and only for the same time step and constraints; a handed
+    chord that needed a second iteration pauses the hand-over for 1, then 2, 4, ... steps
+    (capped), and one that converged at once halves the pause."""
+    dofs = 12
+    constrained = np.zeros(dofs, dtype=bool)
+    system = ConstrainedSystem(
+        sp.identity(dofs, format="csr"), np.zeros(dofs), constrained, np.zeros(dofs)
+    )
+    chords = ChordHandOver()
+
+    def step(took: bool, iterations: int, full_exact: bool = True) -> bool:
+        """A converged step; whether the next step is handed a matrix."""
+        chords.record(system, 0.02, took, iterations, full_exact)
+        return chords.take(0.02, constrained) is system
+
+    assert step(False, 1)  # converged at once: handed on
+    assert not step(False, 2)  # two iterations: nothing to hand on
+    assert not step(False, 1, full_exact=False)  # projected or shortened: nothing
+    chords.record(system, 0.02, False, 1, True)
+    assert chords.take(0.01, constrained) is None  # another time step
+    assert chords.take(0.02, constrained) is None  # taken (dropped) once
+    chords.record(system, 0.02, False, 1, True)
+    assert chords.take(0.02, ~constrained) is None  # other constraints
+    assert not step(True, 2)  # a handed chord needed two: paused for one more step
+    assert not step(False, 1)  # the paused step
+    assert step(False, 1)
+    assert not step(True, 2) and not step(False, 1) and not step(False, 1)  # paused for 2
+    assert step(False, 1)
+    for _ in range(10):
+        step(True, 2)
+    assert chords._backoff == CHORD_BACKOFF_MAX_STEPS
+    chords.reset()
+    assert step(False, 1)
+    chords._backoff = 8
+    assert step(True, 1) and chords._backoff == 4  # a chord that converged halves it
