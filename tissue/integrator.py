@@ -444,9 +444,9 @@ class ChordHandOver:
     LM's robust steps use it (:mod:`tissue.contact.lagrange`). This integrator's own Newton
     does not: there a chord needs the constrained dofs on their targets from the first
     iterate, and prescribed displacement moves its targets every step, while penalty's
-    augmented rounds pass copies of the state, which never continue a step (tried: handing
-    on, with penalty's steps continued, made its 26,220-tet press slower, 1,354 -> 1,667 ms
-    per simulated second, and gained nothing at 4,126 tets).
+    augmented rounds pass copies of the state, which never continue a step (nor start from
+    the extrapolation: letting them made its 26,220-tet press slower, 1,354 -> 1,667 ms per
+    simulated second, 1,749 with the hand-over too, and gained nothing at 4,126 tets).
     """
 
     def __init__(self) -> None:
