@@ -554,3 +554,18 @@ def test_invalid_specs_name_the_spec_and_list_the_forms(spec):
     assert repr(spec) in message
     for form in ("face", "sphere:RADIUS", "box:LX,LY,LZ", "cylinder:RADIUS,HEIGHT", "PATH"):
         assert form in message
+
+
+def test_near_holds_every_point_inside_or_within_the_margin():
+    """Probe.near (the bounding-sphere filter of the per-step checks) keeps every point whose
+    signed distance is below the margin, and drops points far outside the sphere."""
+    probe = Probe.looking_along(LinearProbeFace(), [0.01, 0.02, 0.03], [0.3, -0.5, 0.8])
+    rng = np.random.default_rng(11)
+    points = probe.position_world + rng.uniform(-0.06, 0.06, size=(4000, 3))
+    distance, _ = probe.signed_distance_world(points)
+    for margin in (0.0, 0.002):
+        near = probe.near(points, margin)
+        assert np.all(near[distance < margin])
+        assert 0 < np.count_nonzero(near) < points.shape[0]
+    far = probe.position_world + [0.0, 0.0, 2.0 * probe.shape.bounding_radius_m]
+    assert not probe.near(far[None, :])[0]

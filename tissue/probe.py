@@ -882,18 +882,10 @@ def unit_quat_to_matrix(quat: NDArray[np.float64]) -> NDArray[np.float64]:
     own; any other caller wants :func:`quat_to_matrix`). Element by element the same
     arithmetic for one quaternion or many, so a batch gives each one's matrix to the bit."""
     quat = np.asarray(quat, dtype=np.float64)
-    if quat.ndim == 1:
-        # One quaternion (the probe's, every step): as Python floats, the same IEEE
-        # arithmetic in a fifth of the time (no moveaxis).
-        w, x, y, z = quat.tolist()
-        return np.array(
-            [
-                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-            ]
-        )
-    w, x, y, z = np.moveaxis(quat, -1, 0)
+    # One quaternion (the probe's, every step) as Python floats: the same IEEE arithmetic in
+    # a fifth of the time (no moveaxis).
+    single = quat.ndim == 1
+    w, x, y, z = quat.tolist() if single else np.moveaxis(quat, -1, 0)
     matrix = np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -901,7 +893,7 @@ def unit_quat_to_matrix(quat: NDArray[np.float64]) -> NDArray[np.float64]:
             [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
         ]
     )
-    return np.moveaxis(matrix, (0, 1), (-2, -1))
+    return matrix if single else np.moveaxis(matrix, (0, 1), (-2, -1))
 
 
 def matrix_to_quat(rotation: ArrayLike) -> NDArray[np.float64]:
@@ -1026,6 +1018,15 @@ class Probe:
     def to_world_frame(self, points_probe: ArrayLike) -> NDArray[np.float64]:
         """Points [m], shape (n, 3), from the probe frame to the world."""
         return _as_points(points_probe) @ self._rotation.T + self.position_world
+
+    def near(self, points_world: NDArray[np.float64], margin_m: float = 0.0) -> NDArray[np.bool_]:
+        """Which points [m] (n, 3) lie within the shape's bounding sphere about the probe
+        origin, widened by ``margin_m`` [m]: only those can be inside the probe or within
+        ``margin_m`` of it. Per-step checks evaluate the signed distance for those alone (a
+        few dozen of the ~500 skin points at the phantom's apex)."""
+        offsets = points_world - self.position_world
+        reach = self.shape.bounding_radius_m + margin_m
+        return np.einsum("ij,ij->i", offsets, offsets) <= reach * reach
 
     def signed_distance_world(
         self, points_world: ArrayLike

@@ -229,8 +229,7 @@ class ContactModel(abc.ABC):
         is evaluated for those (a few dozen of ~500 at the phantom's apex; 24 -> 8 us).
         """
         points = self.contact_points_world()
-        reach = self.probe.shape.bounding_radius_m
-        near = np.sum((points - self.probe.position_world) ** 2, axis=1) <= reach * reach
+        near = self.probe.near(points)
         if not np.any(near):
             return 0.0
         distance, _ = self.probe.signed_distance_world(points[near])

@@ -77,8 +77,7 @@ def detect_contacts(
     the signed distance is evaluated: the probe touches a small part of the skin.
     """
     positions = surface.positions(node_positions)
-    reach = probe.shape.bounding_radius_m + alarm_distance_m
-    near = np.flatnonzero(np.sum((positions - probe.position_world) ** 2, axis=1) <= reach * reach)
+    near = np.flatnonzero(probe.near(positions, alarm_distance_m))
     if near.size == 0:
         empty = np.zeros((0, 3))
         return Contacts(near, empty, np.zeros(0), empty)

@@ -97,6 +97,7 @@ from tissue.contact.fe_model import (
     transpose_product,
 )
 from tissue.errors import ConfigError, TissueInputError
+from tissue.frames import find_column
 from tissue.integrator import (
     LINEAR_SHARE_OF_TOLERANCE,
     PROJECTION_SWITCH,
@@ -1252,8 +1253,8 @@ def _add_point_blocks(
                         j = 3 * nodes[c, b] + m
                         if constrained[j]:
                             continue
-                        q = lo + np.searchsorted(indices[lo:hi], j)
-                        if q < hi and indices[q] == j:
+                        q = find_column(indices, lo, hi, j)
+                        if q >= 0:
                             data[q] += w * blocks[c, k, m]
 
 

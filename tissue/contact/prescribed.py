@@ -221,9 +221,7 @@ class PrescribedContact(FEContactModel):
         held = np.zeros(self.mesh.node_count, dtype=bool)
         held[self._nodes] = True
         nodes = self.boundary_nodes[~held[self.boundary_nodes]]
-        reach = self.probe.shape.bounding_radius_m
-        offsets = positions[nodes] - self.probe.position_world
-        return nodes[np.einsum("ij,ij->i", offsets, offsets) <= reach * reach]
+        return nodes[self.probe.near(positions[nodes])]
 
     def _update_sliding(self) -> None:
         """Frictionless online set: nodes inside the probe's new pose join; a node leaves
