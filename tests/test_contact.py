@@ -21,6 +21,7 @@ from tissue.probe import BoxProbe, Probe, SphereProbe, linear_probe
 from tissue.simulator import SimulationConfig
 from tissue.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.status import StepStatus
+from tissue.threads import running_on_one_thread
 
 E, NU = 3000.0, 0.3
 SIZE = 0.03  # block edge [m]
@@ -462,14 +463,15 @@ def test_robust_contact_moves_to_a_much_finer_volume_boundary() -> None:
 
 @pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs 2 numba threads to see one")
 def test_a_small_step_runs_its_kernels_on_one_thread(block, monkeypatch) -> None:
-    """Below SERIAL_STEP_UNKNOWNS a step's compiled kernels run on one thread (their parallel
-    regions cost more to start than they save there); above it, on all of them."""
+    """Below SERIAL_STEP_UNKNOWNS a step's compiled kernels run on one thread, their serial
+    builds (parallel regions cost more to start than they save there); above it, on all of
+    them."""
     model = _model("penalty", block, SphereProbe(0.005), mode="paper", quasi=False)
     advance = model._advance
     seen: list[int] = []
 
     def recorded():
-        seen.append(numba.get_num_threads())
+        seen.append((numba.get_num_threads(), running_on_one_thread()))
         return advance()
 
     monkeypatch.setattr(model, "_advance", recorded)
@@ -478,8 +480,9 @@ def test_a_small_step_runs_its_kernels_on_one_thread(block, monkeypatch) -> None
     model.step(np.array([0.0, 0.0, SIZE]), np.array([1.0, 0.0, 0.0, 0.0]))
     monkeypatch.setattr(contact_base, "SERIAL_STEP_UNKNOWNS", 3 * block.node_count)
     model.step(np.array([0.0, 0.0, SIZE]), np.array([1.0, 0.0, 0.0, 0.0]))
-    assert seen == [1, threads]
+    assert seen == [(1, True), (threads, False)]
     assert numba.get_num_threads() == threads  # restored after the step
+    assert not running_on_one_thread()
 
 
 def test_penalty_penetration_shrinks_as_stiffness_grows(block) -> None:

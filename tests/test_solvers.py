@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -12,14 +13,17 @@ from tissue.errors import ConfigError
 from tissue.material import TissueMaterials
 from tissue.pardiso import pardiso_available
 from tissue.solvers import (
+    _NO_BLOCKS,
     ConstrainedSystem,
     DirectFactorizer,
     LinearSolver,
     LinearSolverConfig,
     RankOneTerms,
     SymmetricProduct,
+    _jacobi_pcg,
     _NodeBlocks,
 )
+from tissue.threads import one_thread_below, running_on_one_thread
 
 
 def _laplacian_3d(n: int, shift: float) -> sp.csr_matrix:
@@ -526,3 +530,53 @@ def test_reuse_products_follow_a_matrix_modified_in_place() -> None:
         assert fills == 2
     finally:
         _NodeBlocks.fill = fill  # type: ignore[method-assign]
+
+
+def test_parallel_kernels_serial_builds_give_the_parallel_builds_bits_on_one_thread() -> None:
+    """Inside a one-thread ``one_thread_below`` the kernels run their serial builds (no
+    OpenMP region a call): the same bits as the parallel builds on one thread, for the
+    element kernels and for CG, whose serial loop calls the serial products."""
+    mesh = block_mesh((0.02, 0.02, 0.01), (4, 4, 2), fix="z=min")
+    rng = np.random.default_rng(5)
+    positions = mesh.nodes + 1e-3 * rng.standard_normal(mesh.nodes.shape)
+    elasticity = Elasticity(mesh, TissueMaterials())
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        assert not running_on_one_thread()
+        parallel = elasticity.evaluate(positions, project_psd=True)
+    finally:
+        numba.set_num_threads(threads)
+    with one_thread_below(10, 11):
+        assert running_on_one_thread() and numba.get_num_threads() == 1
+        with one_thread_below(10, 5):  # nested above its threshold: still one thread
+            assert running_on_one_thread() and numba.get_num_threads() == 1
+        assert running_on_one_thread()
+        serial = elasticity.evaluate(positions, project_psd=True)
+    assert not running_on_one_thread() and numba.get_num_threads() == threads
+    assert parallel.stiffness is not None and serial.stiffness is not None
+    assert serial.energy_j == parallel.energy_j
+    np.testing.assert_array_equal(serial.forces, parallel.forces)
+    np.testing.assert_array_equal(serial.stiffness.data, parallel.stiffness.data)
+
+    matrix = (parallel.stiffness + 10.0 * sp.eye(parallel.stiffness.shape[0])).tocsr()
+    matrix.sort_indices()
+    rhs = rng.standard_normal(matrix.shape[0])
+    inverse_diagonal = 1.0 / matrix.diagonal()
+    results = []
+    for build in (_jacobi_pcg.parallel, _jacobi_pcg.serial):
+        x = np.zeros_like(rhs)
+        numba.set_num_threads(1)
+        try:
+            iterations, residual = build(
+                matrix.indptr, matrix.indices, matrix.data, *_NO_BLOCKS, rhs, x,
+                inverse_diagonal, 25, 0.0,
+            )  # fmt: skip
+        finally:
+            numba.set_num_threads(threads)
+        results.append((iterations, residual, x))
+    assert results[0][0] == results[1][0] == 25
+    assert results[0][1] == results[1][1]
+    np.testing.assert_array_equal(results[0][2], results[1][2])
+    # Cached in files of their own (numba's cache index does not key on ``parallel``).
+    assert _jacobi_pcg.serial.py_func.__qualname__ == "_jacobi_pcg__serial"

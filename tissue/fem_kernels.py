@@ -44,6 +44,8 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
+from tissue.threads import parallel_kernel
+
 LAW_STABLE = 0
 LAW_CLASSIC = 1
 
@@ -405,7 +407,7 @@ def _negative_modes(
 # Element pass
 
 
-@nb.njit(parallel=True, cache=True, fastmath=False)
+@parallel_kernel(fastmath=False)
 def volume_ratios(x: np.ndarray, tets: np.ndarray, grads: np.ndarray, out: np.ndarray) -> None:
     """J = det F per tet into ``out`` (tet_count,), from positions x [m] (node_count, 3)."""
     tet_count = tets.shape[0]
@@ -488,7 +490,7 @@ def rest_grad_dots(grads: NDArray[np.float64]) -> NDArray[np.float64]:
     return out
 
 
-@nb.njit(parallel=True, cache=True, fastmath=False)
+@parallel_kernel(fastmath=False)
 def element_pass(
     x: np.ndarray,
     tets: np.ndarray,
@@ -687,7 +689,7 @@ def element_pass(
 # Row-parallel gathers
 
 
-@nb.njit(parallel=True, cache=True, fastmath=False)
+@parallel_kernel(fastmath=False)
 def gather_forces(
     incidence_ptr: np.ndarray,
     incidence_tet: np.ndarray,
@@ -762,7 +764,7 @@ def _store_block(data, pos, stride, a00, a01, a02, a10, a11, a12, a20, a21, a22)
     data[pos + 2] = a22
 
 
-@nb.njit(parallel=True, cache=True, fastmath=False)
+@parallel_kernel(fastmath=False)
 def gather_elements(
     block_ptr: np.ndarray,
     block_cols: np.ndarray,
@@ -898,7 +900,7 @@ def gather_elements(
 # Average nodal pressure (Bonet & Burton 1998)
 
 
-@nb.njit(parallel=True, cache=True, fastmath=False)
+@parallel_kernel(fastmath=False)
 def anp_patch_pass(
     ratio: np.ndarray,
     patch_tet_ptr: np.ndarray,
@@ -945,7 +947,7 @@ def anp_patch_pass(
         patch_energy[a] = patch_volume[a] * u
 
 
-@nb.njit(parallel=True, cache=True, fastmath=False)
+@parallel_kernel(fastmath=False)
 def anp_patch_gradients(
     cofactor_grads: np.ndarray,
     patch_tet_ptr: np.ndarray,
@@ -975,7 +977,7 @@ def anp_patch_gradients(
                     gradient[row, i] += wt * cofactor_grads[e, 3 * lc + i]
 
 
-@nb.njit(parallel=True, cache=True, fastmath=False)
+@parallel_kernel(fastmath=False)
 def anp_gather_blocks(
     node_patch_ptr: np.ndarray,
     node_patch: np.ndarray,

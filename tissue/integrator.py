@@ -62,6 +62,7 @@ from tissue.solvers import (
     _free_square_norm,
 )
 from tissue.status import SEVERITY, StepStatus, worst
+from tissue.threads import parallel_kernel
 
 # A node further than this many mesh extents from its rest position means the step blew up.
 _BLOW_UP_EXTENTS = 2.0
@@ -554,7 +555,7 @@ def _add_inertia_and_damping(
     return energy, inertial_square
 
 
-@numba.njit(parallel=True, cache=True)
+@parallel_kernel
 def _scale_add_diagonal(
     data, scale, other, other_scale, diagonal, diagonal_add
 ):  # pragma: no cover - compiled

@@ -39,6 +39,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import ConvexHull
 
 from tissue.errors import ConfigError, MeshError
+from tissue.threads import parallel_kernel
 
 # Default face of the linear probe [m], fitted to ../shared/paper-scene/us_probe_collision.stl
 # (extents 52.89 x 2.69 x 13.20 mm; flat face about 48 x 10.4 mm; stadium-like outline).
@@ -614,7 +615,7 @@ def _solid_angle(px, py, pz, t, corners):  # pragma: no cover - compiled
     return 2.0 * math.atan2(triple, below)
 
 
-@nb.njit(cache=True, parallel=True)
+@parallel_kernel
 def _mesh_signed_distance(
     points, corners, face_normals, lower, upper, distance, normal
 ):  # pragma: no cover

@@ -36,8 +36,9 @@ from tissue.integrator import (
 )
 from tissue.material import TissueMaterials
 from tissue.mesh import TetMesh, check_rigid_motion_removed, node_dofs
-from tissue.solvers import SERIAL_STEP_UNKNOWNS, LinearSolverConfig, one_thread_below
+from tissue.solvers import SERIAL_STEP_UNKNOWNS, LinearSolverConfig
 from tissue.status import StepStatus
+from tissue.threads import one_thread_below
 
 #: Robust mode's inversion barrier: below this volume ratio a tet's energy rises without
 #: bound (:class:`tissue.elasticity.Elasticity`). A tissue tet at nu = 0.49 keeps far more

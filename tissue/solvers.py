@@ -34,7 +34,7 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -54,6 +54,7 @@ from tissue.pardiso import (
     PardisoInstance,
     pardiso_available,
 )
+from tissue.threads import one_thread_below, parallel_kernel
 
 
 class LinearSolverKind(Choice):
@@ -116,7 +117,7 @@ class Factorization(Protocol):
 # serial loop), more than the rest of a Newton step on the 26k-tet mesh.
 
 
-@numba.njit(parallel=True, cache=True)
+@parallel_kernel
 def _spmv(indptr, indices, data, x, out):  # pragma: no cover - compiled
     for row in numba.prange(indptr.shape[0] - 1):
         acc = 0.0
@@ -207,7 +208,7 @@ def _cg_update(x, r, r_old, p, ap, alpha, constrained):  # pragma: no cover - co
     return total
 
 
-@numba.njit(parallel=True, cache=True)
+@parallel_kernel
 def _product(
     indptr, indices, data, upper_ptr, upper_cols, upper, bounds, partial, x, out
 ):  # pragma: no cover - compiled
@@ -264,7 +265,7 @@ def _product(
     return total
 
 
-@numba.njit(parallel=True, cache=True)
+@parallel_kernel
 def _jacobi_start(b, ax, inv_diag, r, p):  # pragma: no cover - compiled
     """r = b - A x, p = r / diag; returns (b . b, r . r, r . p)."""
     b_square = 0.0
@@ -281,7 +282,7 @@ def _jacobi_start(b, ax, inv_diag, r, p):  # pragma: no cover - compiled
     return b_square, r_square, rz
 
 
-@numba.njit(parallel=True, cache=True)
+@parallel_kernel
 def _jacobi_update(x, r, p, ap, alpha, inv_diag):  # pragma: no cover - compiled
     """x += alpha p, r -= alpha A p; returns (r . r / diag, r . r)."""
     rz = 0.0
@@ -295,13 +296,13 @@ def _jacobi_update(x, r, p, ap, alpha, inv_diag):  # pragma: no cover - compiled
     return rz, r_square
 
 
-@numba.njit(parallel=True, cache=True)
+@parallel_kernel
 def _jacobi_direction(p, r, inv_diag, beta):  # pragma: no cover - compiled
     for i in numba.prange(p.shape[0]):
         p[i] = r[i] * inv_diag[i] + beta * p[i]
 
 
-@numba.njit(cache=True)
+@parallel_kernel(prange=False)
 def _jacobi_pcg(
     indptr,
     indices,
@@ -394,7 +395,7 @@ def _count_upper_blocks(indptr, columns, upper_ptr):  # pragma: no cover - compi
     return count
 
 
-@numba.njit(parallel=True, cache=True)
+@parallel_kernel
 def _fill_upper_blocks(
     indptr, columns, data, upper_ptr, upper_cols, upper
 ):  # pragma: no cover - compiled
@@ -414,7 +415,7 @@ def _fill_upper_blocks(
             q += 1
 
 
-@numba.njit(parallel=True, cache=True)
+@parallel_kernel
 def _eliminate(indptr, indices, data, constrained):  # pragma: no cover - compiled
     """Identity rows and columns at constrained dofs, in place."""
     for row in numba.prange(indptr.shape[0] - 1):
@@ -459,7 +460,7 @@ def _add_known_columns(indptr, indices, data, values, out):  # pragma: no cover 
             out[indices[k]] += data[k] * value
 
 
-@numba.njit(parallel=True, cache=True)
+@parallel_kernel
 def _block_inverse_diagonal(upper_ptr, upper_cols, upper, out):  # pragma: no cover - compiled
     """1 / A_ii where positive, else 1, from the diagonal blocks of node blocks; returns
     False if some node row has no diagonal block (then use :func:`_inverse_diagonal`)."""
@@ -475,7 +476,7 @@ def _block_inverse_diagonal(upper_ptr, upper_cols, upper, out):  # pragma: no co
     return missing == 0
 
 
-@numba.njit(parallel=True, cache=True)
+@parallel_kernel
 def _inverse_diagonal(indptr, indices, data, out):  # pragma: no cover - compiled
     """1 / A_ii where positive, else 1 (Jacobi preconditioner; sorted CSR rows)."""
     for row in numba.prange(indptr.shape[0] - 1):
@@ -487,7 +488,7 @@ def _inverse_diagonal(indptr, indices, data, out):  # pragma: no cover - compile
         out[row] = 1.0 / value if value > 0.0 else 1.0
 
 
-@numba.njit(parallel=True, cache=True)
+@parallel_kernel
 def _gather(source, positions, out):  # pragma: no cover - compiled
     """out[i] = source[positions[i]] (converting to out's type)."""
     for i in numba.prange(positions.shape[0]):
@@ -1599,7 +1600,8 @@ def _subtract_columns(z, columns, slots, weights):  # pragma: no cover - compile
             z[i] -= columns[i, column] * weight
 
 
-# Below this many unknowns CG runs on one thread. Each CG iteration is three or four parallel
+# Below this many unknowns CG runs on one thread (its kernels' serial builds, see
+# tissue.threads). Each CG iteration is three or four parallel
 # regions; starting and joining the worker threads costs ~0.1 ms on two shared cores, so 25
 # iterations paid 5-10 ms of synchronisation on the small phantom levels (measured here on
 # 4.1k tets: a paper step 2.3 ms on one thread, 8-12 ms on two) while saving little work.
@@ -1616,24 +1618,6 @@ SERIAL_CG_UNKNOWNS = 40_000
 # 6,966 tets mixed (robust LM 12.6 / 13.3 -> 14.8 / 14.1), and at 12,971 and 26,854 one thread
 # is 10-40 % slower.
 SERIAL_STEP_UNKNOWNS = 3_000
-
-
-@contextlib.contextmanager
-def one_thread_below(unknowns: int, threshold: int) -> Iterator[None]:
-    """Run the enclosed compiled kernels on one thread when ``unknowns`` < ``threshold``.
-
-    Parallel reductions sum in per-thread parts, so their last bits depend on the thread
-    count: below the threshold results no longer depend on the machine's core count.
-    """
-    previous = numba.get_num_threads()
-    if unknowns >= threshold or previous == 1:
-        yield
-        return
-    numba.set_num_threads(1)
-    try:
-        yield
-    finally:
-        numba.set_num_threads(previous)
 
 
 def _threads_for(unknowns: int) -> contextlib.AbstractContextManager[None]:

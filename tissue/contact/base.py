@@ -23,8 +23,9 @@ from tissue.embedding import BarycentricEmbedding
 from tissue.errors import TissueInputError
 from tissue.mesh import TetMesh, boundary_faces
 from tissue.probe import Probe, ProbeShape
-from tissue.solvers import SERIAL_STEP_UNKNOWNS, one_thread_below
+from tissue.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.status import StepStatus
+from tissue.threads import one_thread_below
 
 
 class ContactMethod(Choice):
