@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import threading
+
 import numba
 import numpy as np
 import pytest
@@ -554,6 +556,13 @@ def test_parallel_kernels_serial_builds_give_the_parallel_builds_bits_on_one_thr
         assert running_on_one_thread()
         serial = elasticity.evaluate(positions, project_psd=True)
     assert not running_on_one_thread() and numba.get_num_threads() == threads
+    # Per Python thread, as numba's thread count is: another thread keeps its own.
+    seen_elsewhere = []
+    with one_thread_below(10, 11):
+        other = threading.Thread(target=lambda: seen_elsewhere.append(running_on_one_thread()))
+        other.start()
+        other.join()
+    assert seen_elsewhere == [False]
     assert parallel.stiffness is not None and serial.stiffness is not None
     assert serial.energy_j == parallel.energy_j
     np.testing.assert_array_equal(serial.forces, parallel.forces)

@@ -15,15 +15,23 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import threading
 import types
 from collections.abc import Callable, Iterator
 from typing import Any, Protocol
 
 import numba
 
-# Whether the enclosing one_thread_below runs its kernels on one thread (a list: read on
-# every kernel call, without a global statement or an attribute lookup on a class).
-_ONE_THREAD = [False]
+
+class _ThreadState(threading.local):
+    """Whether the enclosing :func:`one_thread_below` holds this Python thread's kernels to
+    one thread. Per thread, as numba's ``set_num_threads`` is: a simulation in another thread
+    keeps its own setting."""
+
+    one_thread = False
+
+
+_STATE = _ThreadState()
 
 
 @contextlib.contextmanager
@@ -35,25 +43,25 @@ def one_thread_below(unknowns: int, threshold: int) -> Iterator[None]:
     count: below the threshold results no longer depend on the machine's core count.
     """
     previous_threads = numba.get_num_threads()
-    previous_serial = _ONE_THREAD[0]
+    previous_serial = _STATE.one_thread
     serial = unknowns < threshold or previous_threads == 1
     if not serial:
         yield
         return
     if previous_threads != 1:
         numba.set_num_threads(1)
-    _ONE_THREAD[0] = True
+    _STATE.one_thread = True
     try:
         yield
     finally:
-        _ONE_THREAD[0] = previous_serial
+        _STATE.one_thread = previous_serial
         if previous_threads != 1:
             numba.set_num_threads(previous_threads)
 
 
 def running_on_one_thread() -> bool:
     """Whether the calling code is inside a :func:`one_thread_below` that holds one thread."""
-    return _ONE_THREAD[0]
+    return _STATE.one_thread
 
 
 class ParallelKernel(Protocol):
@@ -90,12 +98,12 @@ def parallel_kernel(
     serial_build = numba.njit(cache=True, **options)(
         _with_kernels(function, "serial", suffix="__serial")
     )
-    one_thread = _ONE_THREAD
+    state = _STATE
 
     # A plain function, not an object with __call__: the dispatch adds one Python call.
     @functools.wraps(function)
     def kernel(*args: Any) -> Any:
-        return (serial_build if one_thread[0] else parallel_build)(*args)
+        return (serial_build if state.one_thread else parallel_build)(*args)
 
     kernel.parallel = parallel_build  # type: ignore[attr-defined]
     kernel.serial = serial_build  # type: ignore[attr-defined]
