@@ -25,7 +25,15 @@ from tissue.solvers import (
     _jacobi_pcg,
     _NodeBlocks,
 )
-from tissue.threads import one_thread_below, running_on_one_thread
+from tissue.threads import one_thread_below, parallel_kernel, running_on_one_thread
+
+
+@parallel_kernel
+def _doubled_sum(values):  # pragma: no cover - compiled
+    total = 0.0
+    for i in numba.prange(values.shape[0]):
+        total += 2.0 * values[i]
+    return total
 
 
 def _laplacian_3d(n: int, shift: float) -> sp.csr_matrix:
@@ -556,6 +564,13 @@ def test_parallel_kernels_serial_builds_give_the_parallel_builds_bits_on_one_thr
         assert running_on_one_thread()
         serial = elasticity.evaluate(positions, project_psd=True)
     assert not running_on_one_thread() and numba.get_num_threads() == threads
+    # Which build ran: each compiles (or loads) a specialisation when first called.
+    values = np.arange(5.0)
+    with one_thread_below(10, 11):
+        assert _doubled_sum(values) == 20.0
+    assert len(_doubled_sum.serial.signatures) == 1 and not _doubled_sum.parallel.signatures
+    assert _doubled_sum(values) == 20.0
+    assert len(_doubled_sum.parallel.signatures) == 1
     # Per Python thread, as numba's thread count is: another thread keeps its own.
     seen_elsewhere = []
     with one_thread_below(10, 11):

@@ -18,7 +18,7 @@ import functools
 import threading
 import types
 from collections.abc import Callable, Iterator
-from typing import Any, Protocol
+from typing import Any
 
 import numba
 
@@ -64,22 +64,14 @@ def running_on_one_thread() -> bool:
     return _STATE.one_thread
 
 
-class ParallelKernel(Protocol):
-    """A kernel compiled twice: ``parallel`` (``parallel=True``) and ``serial`` (its prange
-    loops as plain loops). Calling it runs the serial build inside a one-thread
-    :func:`one_thread_below`, else the parallel one."""
-
-    parallel: Any
-    serial: Any
-
-    def __call__(self, *args: Any) -> Any: ...
-
-
 def parallel_kernel(
     function: Callable[..., Any] | None = None, *, prange: bool = True, **options: Any
 ) -> Any:
-    """Compile ``function`` (numba ``njit``, ``cache=True``, ``options``) as a
-    :class:`ParallelKernel`. Use as ``@parallel_kernel`` or ``@parallel_kernel(fastmath=False)``.
+    """Compile ``function`` (numba ``njit``, ``cache=True``, ``options``) twice: the
+    returned function's ``parallel`` build (``parallel=True``) and its ``serial`` build (prange
+    loops as plain loops). Calling it runs the serial build inside a one-thread
+    :func:`one_thread_below`, else the parallel one. Use as ``@parallel_kernel`` or
+    ``@parallel_kernel(fastmath=False)``.
 
     ``prange=False`` is for a serial kernel that calls parallel kernels (CG's loop): both of
     its builds are serial, each calling the matching build of those kernels. Such a kernel
@@ -112,7 +104,7 @@ def parallel_kernel(
 
 def _with_kernels(function: Callable[..., Any], build: str, suffix: str) -> Callable[..., Any]:
     """``function`` itself, or a copy renamed with ``suffix`` and, if it calls
-    :class:`ParallelKernel` s, with globals that name their ``build`` ("parallel" or
+    :func:`parallel_kernel` s, with globals that name their ``build`` ("parallel" or
     "serial"): numba compiles calls to its own dispatchers, not to Python functions."""
     names = function.__code__.co_names
     kernels = {
