@@ -161,7 +161,7 @@ def run_compression(
     instability: dict[str, Any] | None = None
     if resume is None:
         model.reset()
-        model.probe.set_pose(start.position, start.quat_wxyz)
+        model.place_probe(start.position, start.quat_wxyz)
         # Paths are planned against the collision surface, so that is what must start clear
         # (a method holding the volume's boundary nodes may find one a fraction of a mm inside,
         # where the surface's flat facets cut under the curved boundary; it pushes it out in
@@ -197,7 +197,7 @@ def run_compression(
         first_settle = resume.settle_done
         level_status = StepStatus(resume.level_status)
         if first_step == 1:
-            model.probe.set_pose(position, quat)  # mid-way, the saved state holds the pose
+            model.place_probe(position, quat)  # mid-way, the saved state holds the pose
         if monitor is not None:
             for done in steps:
                 monitor.observe(np.asarray(done["probe_pos"]), np.asarray(done["landmarks"]))

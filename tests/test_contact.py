@@ -470,9 +470,9 @@ def test_a_small_step_runs_its_kernels_on_one_thread(block, monkeypatch) -> None
     advance = model._advance
     seen: list[int] = []
 
-    def recorded():
+    def recorded(h):
         seen.append((numba.get_num_threads(), running_on_one_thread()))
-        return advance()
+        return advance(h)
 
     monkeypatch.setattr(model, "_advance", recorded)
     threads = numba.get_num_threads()

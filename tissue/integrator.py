@@ -640,6 +640,14 @@ class ImplicitIntegrator:
             self._keep_end_state(self._rest)
         _ = self.solver.factorizer
 
+    def drop_caches(self) -> None:
+        """Forget what steps keep for the next (the kept factorisation and its corrections,
+        the last step's record its Newton start is extrapolated from, a paper step's end
+        evaluation): the next step then starts as in a freshly built integrator."""
+        self.solver.forget()
+        self._last_step = None
+        self._end_state = None
+
     def step(
         self,
         positions: NDArray[np.float64],

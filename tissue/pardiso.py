@@ -1,8 +1,8 @@
 """MKL Pardiso, called directly: the sparse direct solver behind ``tissue.solvers``' direct
 and ``reuse`` solvers.
 
-pypardiso is used only to locate MKL's ``pardiso`` entry point (it installs MKL from wheels
-with pip alone); the calls pass zero-based CSR arrays as they are and free each instance's
+pypardiso is the dependency that installs MKL from wheels with pip alone (and the fallback
+that locates it); the calls pass zero-based CSR arrays as they are and free each instance's
 factor when the instance is collected. One :class:`PardisoInstance` holds one symbolic
 analysis (per pattern, matrix type and precision) and its latest numerical factor.
 """
@@ -16,6 +16,7 @@ import os
 import sys
 import weakref
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,33 +28,52 @@ class PardisoError(RuntimeError):
 
 _PARDISO_FUNCTION: list[object] = []
 
+# MKL's threading layers (mkl_service.h): MKL_Set_Threading_Layer takes one of these.
+_MKL_THREADING_SEQUENTIAL = 1
+
+# The prototype of MKL's ``pardiso`` (oneMKL reference: pt, maxfct, mnum, mtype, phase, n, a,
+# ia, ja, perm, nrhs, iparm, msglvl, b, x, error), for 64-bit pointers and 32-bit integers.
+_INT_P = ctypes.POINTER(ctypes.c_int32)
+_PARDISO_ARGTYPES: list[Any] = [
+    ctypes.POINTER(ctypes.c_int64), _INT_P, _INT_P, _INT_P, _INT_P, _INT_P, ctypes.c_void_p,
+    _INT_P, _INT_P, _INT_P, _INT_P, _INT_P, _INT_P, ctypes.c_void_p, ctypes.c_void_p, _INT_P,
+]  # fmt: skip
+
 
 def pardiso_function() -> object:
-    """MKL's ``pardiso`` entry point, located and typed by pypardiso (loaded once per process).
+    """MKL's ``pardiso`` entry point, loaded once per process.
 
-    Unless ``PYPARDISO_MKL_RT`` names the library, pypardiso, both at import and in every
-    ``PyPardisoSolver()``, searches the whole Python environment recursively for ``mkl_rt``:
-    0.7-0.9 s each time here (a venv with torch), which landed in the first simulated step.
-    The ``mkl`` wheel puts it in ``<prefix>/lib`` (``Library/bin`` on Windows), so it is named
-    from there first; pypardiso's own search remains the fallback.
+    The ``mkl`` wheel (installed with pypardiso) puts ``libmkl_rt`` in ``<prefix>/lib``
+    (``Library/bin`` on Windows): it is loaded from there, or, failing that, found by
+    pypardiso's own search (which walks the whole environment: 0.7-0.9 s here, so it is only
+    the fallback). Before any other MKL call, MKL is made sequential unless the thread policy
+    says otherwise or the user set ``MKL_THREADING_LAYER`` (see :mod:`tissue.threads`).
     """
     if not _PARDISO_FUNCTION:
-        if "PYPARDISO_MKL_RT" not in os.environ:
-            patterns = ("lib/libmkl_rt.so*", "lib/libmkl_rt*.dylib", "Library/bin/mkl_rt*.dll")
-            found = [
-                path
-                for pattern in patterns
-                for path in sorted(glob.glob(os.path.join(sys.prefix, pattern)), key=len)
-            ]
-            for path in found:
-                with contextlib.suppress(OSError):
-                    ctypes.CDLL(path)  # loads: name it; otherwise try the next or search
-                    os.environ["PYPARDISO_MKL_RT"] = path
-                    break
-        import pypardiso
+        library = _load_mkl_runtime()
+        from tissue.threads import thread_policy
 
-        _PARDISO_FUNCTION.append(pypardiso.PyPardisoSolver()._mkl_pardiso)
+        if thread_policy().mkl_sequential and "MKL_THREADING_LAYER" not in os.environ:
+            with contextlib.suppress(AttributeError):  # an MKL without the call: its default
+                library.MKL_Set_Threading_Layer(_MKL_THREADING_SEQUENTIAL)
+        function = library.pardiso
+        function.argtypes = _PARDISO_ARGTYPES
+        function.restype = None
+        _PARDISO_FUNCTION.append(function)
     return _PARDISO_FUNCTION[0]
+
+
+def _load_mkl_runtime() -> ctypes.CDLL:
+    """MKL's single dynamic library (``mkl_rt``), from the environment's ``lib`` folder or
+    where pypardiso finds it; raises OSError or ImportError where there is none."""
+    patterns = ("lib/libmkl_rt.so*", "lib/libmkl_rt*.dylib", "Library/bin/mkl_rt*.dll")
+    for pattern in patterns:
+        for path in sorted(glob.glob(os.path.join(sys.prefix, pattern)), key=len):
+            with contextlib.suppress(OSError):
+                return ctypes.CDLL(path)
+    import pypardiso
+
+    return pypardiso.PyPardisoSolver().libmkl
 
 
 def _pardiso_call(function, pt, iparm, mtype, phase, n, data, indptr, indices, b, x, nrhs):

@@ -1474,11 +1474,35 @@ class PBDContact(ContactModel):
         """Kinetic energy of the tissue now [J]."""
         return 0.5 * float(np.sum(self.lumped_mass[:, None] * self._v**2))
 
+    def _snapshot_tissue(self) -> dict[str, Any]:
+        before = self._previous_pose
+        return {
+            "x": self._x.copy(),
+            "v": self._v.copy(),
+            "previous_pose": None if before is None else (before[0].copy(), before[1].copy()),
+            "lam_dev": self._lam_dev.copy(),
+            "lam_hyd": self._lam_hyd.copy(),
+        }
+
+    def _restore_tissue(self, snapshot: dict[str, Any]) -> None:
+        self._x = np.array(snapshot["x"], dtype=np.float64)
+        self._v = np.array(snapshot["v"], dtype=np.float64)
+        before = snapshot["previous_pose"]
+        self._previous_pose = None if before is None else (before[0].copy(), before[1].copy())
+        self._lam_dev[:] = snapshot["lam_dev"]
+        self._lam_hyd[:] = snapshot["lam_hyd"]
+
     def _advance(
-        self,
+        self, step_s: float
     ) -> tuple[StepStatus, NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
         cfg = self.config
-        h = cfg.substep_dt
+        h = step_s / cfg.substeps
+        # The compliances were divided by the nominal substep squared when the model was
+        # built; a shorter step (a sub-motion, see ContactModel.step) rescales them.
+        scale = 1.0 if step_s == cfg.tissue_dt else (cfg.substep_dt / h) ** 2
+        alpha_dev = self._alpha_dev if scale == 1.0 else self._alpha_dev * scale
+        alpha_hyd = self._alpha_hyd if scale == 1.0 else self._alpha_hyd * scale
+        contact_alpha = self._contact_alpha * scale
         end_position = self.probe.position_world.copy()
         end_quat = self.probe.quat_wxyz.copy()
         start_position, start_quat = self._previous_pose or (end_position, end_quat)
@@ -1507,7 +1531,7 @@ class PBDContact(ContactModel):
         two_threads = cfg.sweep_domains == 2 and nb.get_num_threads() > 1
         screen_first = two_threads and self.mesh.tet_count >= PARALLEL_SCREEN_TETS
         tissue_args = (
-            x, self._inv_mass, self._tets, self._dm_inv, self._alpha_dev, self._alpha_hyd,
+            x, self._inv_mass, self._tets, self._dm_inv, alpha_dev, alpha_hyd,
             self._gamma, self._lam_dev, self._lam_hyd, support_step,
         )  # fmt: skip
         # The probe's pose at each substep's end, all at once (nlerp, each quaternion
@@ -1530,7 +1554,7 @@ class PBDContact(ContactModel):
             lam_contact = np.zeros(contact_points.shape[0])
             contact_args = (
                 self._step_point_nodes, self._point_weights, contact_points, normals, anchors,
-                self._contact_alpha, lam_contact,
+                contact_alpha, lam_contact,
             )  # fmt: skip
             for sweep in range(cfg.iterations):
                 if two_threads:
@@ -1583,10 +1607,10 @@ class PBDContact(ContactModel):
         diagnostics["min_volume_ratio"] = min_ratio
         # Force of the base on the tissue: minus the elastic constraint forces at fixed nodes,
         # averaged over the step (impulse / tissue_dt).
-        diagnostics["support_force_n"] = -support.sum(axis=0) / cfg.tissue_dt
+        diagnostics["support_force_n"] = -support.sum(axis=0) / step_s
         in_contact = np.flatnonzero(np.any(impulse != 0.0, axis=1))
         points_world = self._positions(self._x)[in_contact]
-        forces = -impulse[in_contact] / cfg.tissue_dt
+        forces = -impulse[in_contact] / step_s
         status = StepStatus.INVERTED if not min_ratio > 0.0 else StepStatus.OK
         return status, points_world, forces, diagnostics
 

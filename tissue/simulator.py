@@ -38,7 +38,7 @@ from tissue.material import TissueMaterials
 from tissue.mesh import TetMesh, check_rigid_motion_removed, node_dofs
 from tissue.solvers import SERIAL_STEP_UNKNOWNS, LinearSolverConfig
 from tissue.status import StepStatus
-from tissue.threads import one_thread_below
+from tissue.threads import one_thread_below, thread_policy
 
 #: Robust mode's inversion barrier: below this volume ratio a tet's energy rises without
 #: bound (:class:`tissue.elasticity.Elasticity`). A tissue tet at nu = 0.49 keeps far more
@@ -210,6 +210,14 @@ class TissueSimulator:
         self.mesh = mesh
         self.materials = materials or TissueMaterials()
         self.config = config or SimulationConfig()
+        # The build runs under the step's thread rule: parallel sums in the rest stiffness and
+        # the node blocks' partition would otherwise follow the thread count (tissue.threads).
+        thread_policy()
+        with one_thread_below(3 * mesh.node_count, SERIAL_STEP_UNKNOWNS):
+            self._build()
+
+    def _build(self) -> None:
+        mesh = self.mesh
         assert self.config.inversion_barrier is not None  # resolved by SimulationConfig
         self.elasticity = Elasticity(
             mesh, self.materials, self.config.anti_locking, self.config.inversion_barrier
@@ -385,6 +393,20 @@ class TissueSimulator:
         self._prescribed_dofs = dofs.copy()
         self._prescribed_targets = targets.copy()
         self._frames = None
+
+    def boundary_state(self) -> dict[str, Any]:
+        """The prescribed set (dofs, targets [m], node frames), for snapshots."""
+        return {
+            "dofs": self._prescribed_dofs.copy(),
+            "targets": self._prescribed_targets.copy(),
+            "frames": self._frames,  # immutable once built
+        }
+
+    def set_boundary_state(self, state: dict[str, Any]) -> None:
+        """Adopt a :meth:`boundary_state`."""
+        self._prescribed_dofs = np.array(state["dofs"], dtype=np.int64)
+        self._prescribed_targets = np.array(state["targets"], dtype=np.float64)
+        self._frames = state["frames"]
 
     def clear_prescribed(self) -> None:
         """Release every prescribed node (fixed nodes stay fixed)."""

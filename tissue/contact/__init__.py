@@ -11,6 +11,8 @@ from tissue.contact.base import ContactMethod, ContactModel, ContactResult
 from tissue.contact.lagrange import LagrangeContact, LagrangeParams
 from tissue.contact.penalty import PenaltyContact, PenaltyParams
 from tissue.contact.prescribed import PrescribedContact, PrescribedParams
+from tissue.solvers import SERIAL_STEP_UNKNOWNS
+from tissue.threads import one_thread_below, thread_policy
 
 # name -> (model class, its parameter dataclass)
 CONTACT_MODELS: dict[ContactMethod, tuple[type[ContactModel], type]] = {
@@ -33,7 +35,12 @@ def make_contact_model(
 
         CONTACT_MODELS[method] = (PBDContact, PBDConfig)
     model_class, _ = CONTACT_MODELS[method]
-    return model_class(mesh, probe_shape, **kwargs)
+    thread_policy()
+    # Built under the step's thread rule, as TissueSimulator is (tissue.threads): a small
+    # tissue's build then gives the same bits on any number of threads.
+    node_count = int(getattr(mesh, "node_count", 0))
+    with one_thread_below(3 * node_count, SERIAL_STEP_UNKNOWNS):
+        return model_class(mesh, probe_shape, **kwargs)
 
 
 __all__ = [

@@ -11,6 +11,7 @@ status.
 from __future__ import annotations
 
 import abc
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -24,7 +25,7 @@ from tissue.errors import TissueInputError
 from tissue.mesh import TetMesh, boundary_faces
 from tissue.probe import Probe, ProbeShape
 from tissue.solvers import SERIAL_STEP_UNKNOWNS
-from tissue.status import StepStatus
+from tissue.status import StepStatus, worst
 from tissue.threads import one_thread_below
 
 
@@ -57,6 +58,9 @@ class ContactResult:
         landmarks: landmark positions [m], (landmark_count, 3).
         compute_ms: wall time of the step [ms].
         diagnostics: solver details (iterations, residuals, substeps, ...).
+        skin_penetration_m: deepest skin point (collision-surface vertex) inside the probe
+            [m] (>= 0), the same measure for every method
+            (:meth:`ContactModel.skin_penetration_m`).
     """
 
     status: StepStatus
@@ -69,6 +73,7 @@ class ContactResult:
     landmarks: NDArray[np.float64]
     compute_ms: float
     diagnostics: dict[str, Any] = field(default_factory=dict)
+    skin_penetration_m: float = 0.0
 
     @property
     def contact_count(self) -> int:
@@ -121,11 +126,17 @@ def boundary_surface(mesh: TetMesh) -> SurfacePoints:
     return SurfacePoints(BarycentricEmbedding(tet_nodes, weights), remap[faces])
 
 
+#: A step never splits its probe motion into more sub-motions than this (a probe teleported
+#: across the room is split into this many, each then longer than the tunnelling bound; the
+#: step's diagnostics say so).
+MAX_SUB_MOTIONS = 64
+
+
 class ContactModel(abc.ABC):
     """A tissue coupled to a rigid probe through one contact strategy.
 
-    Subclasses implement :meth:`_advance`; everything else (pose handling, penetration,
-    wrench, timing, landmarks) is shared.
+    Subclasses implement :meth:`_advance`; everything else (pose handling, sub-motions
+    against tunnelling, penetration, wrench, timing, landmarks, snapshots) is shared.
 
     Args:
         mesh: the tissue mesh.
@@ -138,7 +149,17 @@ class ContactModel(abc.ABC):
         self.mesh = mesh
         self.probe = Probe(probe_shape)
         self.surface = contact_surface(mesh)
+        # The skin: the collision surface (or the volume's boundary), whatever points the
+        # method itself acts on; skin penetration is measured on it for every method.
+        self.skin = contact_surface(mesh)
         self._time = 0.0
+        # The probe pose the tissue last saw (a step sweeps from it), None before the first.
+        self._last_pose: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+        bounds = probe_shape.local_bounds_m()
+        #: The longest probe motion one tissue step takes [m]: half the probe's thinnest
+        #: dimension, so that no skin point can pass through the probe within one (a step
+        #: whose probe moves farther is split, see :meth:`step`).
+        self.max_sub_motion_m = 0.5 * float(np.min(bounds[1] - bounds[0]))
 
     # ------------------------------------------------------------------ interface
 
@@ -148,13 +169,26 @@ class ContactModel(abc.ABC):
         """Current tissue node positions [m], (node_count, 3)."""
 
     @property
+    @abc.abstractmethod
+    def node_velocities(self) -> NDArray[np.float64]:
+        """Current tissue node velocities [m/s], (node_count, 3)."""
+
+    @property
     def time_s(self) -> float:
         return self._time
 
     def reset(self) -> None:
-        """Tissue back at rest, time 0, contact state cleared."""
+        """Tissue back at rest, time 0, contact state cleared, no probe pose seen yet."""
         self._time = 0.0
+        self._last_pose = None
         self._reset_tissue()
+
+    def place_probe(self, position_world: ArrayLike, quat_wxyz: ArrayLike) -> None:
+        """Put the probe at a pose without stepping the tissue (a start pose): the next
+        :meth:`step` sweeps the probe from here. The pose must not hold the skin inside
+        the probe (nothing checks it here; the next step would push it out)."""
+        self.probe.set_pose(position_world, quat_wxyz)
+        self._last_pose = (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
 
     def saved_state(self) -> dict[str, NDArray[np.float64]]:
         """The state a run can be resumed from (:meth:`load_state`): named arrays, all a
@@ -174,8 +208,47 @@ class ContactModel(abc.ABC):
             f"{type(self).__name__} cannot load a saved state; resumable runs need the 'lm' method"
         )
 
+    def snapshot(self) -> dict[str, Any]:
+        """Everything a later step depends on, copied (for :meth:`restore`).
+
+        Taking a snapshot is a cache boundary: the solver caches (kept factorisations and
+        their corrections, cached compliances, a Newton start extrapolated from the last
+        step) are dropped here, as a restored model starts without them; the next step
+        rebuilds them. So this model and any restored from the snapshot continue bit for bit
+        alike, at the price of one refactorisation in the next step.
+        """
+        self.drop_caches()
+        last = self._last_pose
+        return {
+            "time_s": self._time,
+            "probe_pose": (self.probe.position_world.copy(), self.probe.quat_wxyz.copy()),
+            "last_pose": None if last is None else (last[0].copy(), last[1].copy()),
+            **self._snapshot_tissue(),
+        }
+
+    def restore(self, snapshot: dict[str, Any]) -> None:
+        """Continue from a :meth:`snapshot` of a model built the same way (same mesh,
+        materials, method and parameters)."""
+        self.drop_caches()
+        self._time = float(snapshot["time_s"])
+        self.probe.set_pose(*snapshot["probe_pose"])
+        last = snapshot["last_pose"]
+        self._last_pose = None if last is None else (last[0].copy(), last[1].copy())
+        self._restore_tissue(snapshot)
+
+    def drop_caches(self) -> None:  # noqa: B027 - strategies without caches keep it empty
+        """Forget every solver cache (see :meth:`snapshot`); the physical state stays."""
+
     def step(self, position_world: ArrayLike, quat_wxyz: ArrayLike) -> ContactResult:
         """Move the probe to the pose and advance the tissue one ``tissue_dt``.
+
+        A probe motion longer than :attr:`max_sub_motion_m` since the pose the tissue last
+        saw (the translation plus the rotation angle times the probe's bounding radius) is
+        split into equal sub-motions shorter than it, each a tissue step of an equal share
+        of ``tissue_dt``: otherwise the skin could pass through the probe within one step
+        and no method would see it (``diagnostics["sub_motions"]`` counts them). A
+        sub-motion that fails (diverged, solver failed) ends the step there, with the
+        state of the sub-motions before it.
 
         Args:
             position_world: probe origin (contact-face centre) [m], (3,).
@@ -188,18 +261,37 @@ class ContactModel(abc.ABC):
             )
         start = time.perf_counter()
         self.probe.set_pose(position, quat_wxyz)
+        end = (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
+        begin = self._last_pose
+        pieces = 1 if begin is None else self.sub_motion_count(begin, end)
+        h = self.dt if pieces == 1 else self.dt / pieces
+        status = StepStatus.OK
         with one_thread_below(3 * self.mesh.node_count, SERIAL_STEP_UNKNOWNS):
-            status, points, forces, diagnostics = self._advance()
+            for piece in range(1, pieces + 1):
+                if piece < pieces:
+                    assert begin is not None
+                    self.probe.set_pose(*interpolate_pose(begin, end, piece / pieces))
+                elif pieces > 1:
+                    self.probe.set_pose(*end)
+                piece_status, points, forces, diagnostics = self._advance(h)
+                status = worst(status, piece_status)
+                if piece_status in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
+                    break
+                self._time += h
+                self._last_pose = (
+                    self.probe.position_world.copy(),
+                    self.probe.quat_wxyz.copy(),
+                )
         if status in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
-            # The state was kept from before the step; forces of the failed solve mean nothing.
+            # The state is the last completed sub-motion's; forces of a failed solve mean
+            # nothing.
             points, forces = np.zeros((0, 3)), np.zeros((0, 3))
         force, torque = (
             self.probe.wrench_about_origin(points, forces)
             if points.shape[0]
             else (np.zeros(3), np.zeros(3))
         )
-        if status not in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
-            self._time += self.dt
+        diagnostics = {**diagnostics, "sub_motions": pieces}
         elapsed_ms = 1e3 * (time.perf_counter() - start)
         return ContactResult(
             status=status,
@@ -212,7 +304,23 @@ class ContactModel(abc.ABC):
             landmarks=self.landmark_positions(),
             compute_ms=elapsed_ms,
             diagnostics=diagnostics,
+            skin_penetration_m=self.skin_penetration_m(),
         )
+
+    def sub_motion_count(
+        self,
+        begin: tuple[NDArray[np.float64], NDArray[np.float64]],
+        end: tuple[NDArray[np.float64], NDArray[np.float64]],
+    ) -> int:
+        """Sub-motions a step from pose ``begin`` to ``end`` (position [m], quaternion) is
+        split into: each moves no point of the probe farther than :attr:`max_sub_motion_m`
+        (translation + rotation angle x bounding radius bounds every point's travel), at
+        most :data:`MAX_SUB_MOTIONS`."""
+        translation = float(np.linalg.norm(end[0] - begin[0]))
+        cosine = min(1.0, abs(float(begin[1] @ end[1])))
+        angle = 2.0 * math.acos(cosine)
+        travel = translation + angle * self.probe.shape.bounding_radius_m
+        return min(MAX_SUB_MOTIONS, max(1, math.ceil(travel / self.max_sub_motion_m - 1e-12)))
 
     def contact_points_world(self) -> NDArray[np.float64]:
         """The tissue points this method keeps out of the probe [m], (point_count, 3).
@@ -224,17 +332,15 @@ class ContactModel(abc.ABC):
         return self.surface.positions(self.node_positions)
 
     def penetration_max_m(self) -> float:
-        """Deepest of :meth:`contact_points_world` inside the probe now [m] (0 if none).
+        """Deepest of :meth:`contact_points_world` inside the probe now [m] (0 if none)."""
+        return self.probe.deepest_inside_m(self.contact_points_world())
 
-        Only points within the probe's bounding sphere can be inside it: the signed distance
-        is evaluated for those (a few dozen of ~500 at the phantom's apex; 24 -> 8 us).
-        """
-        points = self.contact_points_world()
-        near = self.probe.near(points)
-        if not np.any(near):
-            return 0.0
-        distance, _ = self.probe.signed_distance_world(points[near])
-        return float(max(0.0, -float(distance.min())))
+    def skin_penetration_m(self) -> float:
+        """How far the skin lies inside the probe now [m] (>= 0): the deepest of the
+        collision surface's vertices (the volume's boundary nodes where the mesh has no
+        collision surface) inside the probe's body. Measured the same way for every method,
+        whatever points the method itself acts on."""
+        return self.probe.deepest_inside_m(self.skin.positions(self.node_positions))
 
     def landmark_positions(self) -> NDArray[np.float64]:
         """Current landmark positions [m], (landmark_count, 3)."""
@@ -249,9 +355,10 @@ class ContactModel(abc.ABC):
 
     @abc.abstractmethod
     def _advance(
-        self,
+        self, h: float
     ) -> tuple[StepStatus, NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
-        """One tissue step with the probe at its new pose.
+        """One tissue step of ``h`` [s] (``dt``, or a share of it for a sub-motion) with the
+        probe at its new pose.
 
         Returns:
             (status, contact points [m] (k, 3), forces on the probe at them [N] (k, 3),
@@ -260,3 +367,25 @@ class ContactModel(abc.ABC):
 
     @abc.abstractmethod
     def _reset_tissue(self) -> None: ...
+
+    @abc.abstractmethod
+    def _snapshot_tissue(self) -> dict[str, Any]:
+        """The tissue's and the strategy's state, copied (see :meth:`snapshot`)."""
+
+    @abc.abstractmethod
+    def _restore_tissue(self, snapshot: dict[str, Any]) -> None:
+        """Adopt what :meth:`_snapshot_tissue` returned."""
+
+
+def interpolate_pose(
+    begin: tuple[NDArray[np.float64], NDArray[np.float64]],
+    end: tuple[NDArray[np.float64], NDArray[np.float64]],
+    fraction: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The pose a ``fraction`` of the way from ``begin`` to ``end`` (position [m],
+    quaternion): positions linearly, orientations by normalised linear interpolation the
+    short way round."""
+    position = begin[0] + fraction * (end[0] - begin[0])
+    other = end[1] if float(begin[1] @ end[1]) >= 0.0 else -end[1]
+    quat = (1.0 - fraction) * begin[1] + fraction * other
+    return position, quat / np.linalg.norm(quat)

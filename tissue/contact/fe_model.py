@@ -214,11 +214,41 @@ class FEContactModel(ContactModel):
         return self.sim.positions
 
     @property
+    def node_velocities(self) -> NDArray[np.float64]:
+        return self.sim.velocities
+
+    @property
     def dt(self) -> float:
         return self.sim.config.tissue_dt
 
     def _reset_tissue(self) -> None:
         self.sim.reset()
+
+    def drop_caches(self) -> None:
+        self.sim.integrator.drop_caches()
+
+    def _snapshot_tissue(self) -> dict[str, Any]:
+        sim = self.sim
+        return {
+            "positions": sim.positions.copy(),
+            "velocities": sim.velocities.copy(),
+            "tissue_time_s": sim.time_s,
+            "boundary": sim.boundary_state(),
+            **self._snapshot_contact(),
+        }
+
+    def _restore_tissue(self, snapshot: dict[str, Any]) -> None:
+        sim = self.sim
+        sim.set_state(snapshot["positions"], snapshot["velocities"], snapshot["tissue_time_s"])
+        sim.set_boundary_state(snapshot["boundary"])
+        self._restore_contact(snapshot)
+
+    def _snapshot_contact(self) -> dict[str, Any]:
+        """The strategy's own state beyond the tissue's (copied); none by default."""
+        return {}
+
+    def _restore_contact(self, snapshot: dict[str, Any]) -> None:
+        """Adopt what :meth:`_snapshot_contact` returned."""
 
     def surface_points_on_probe(
         self, contacts: Contacts, magnitudes: NDArray[np.float64]

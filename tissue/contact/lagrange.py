@@ -316,13 +316,31 @@ class LagrangeContact(FEContactModel):
         self._last_step = None
         self._chords.reset()
 
+    def drop_caches(self) -> None:
+        super().drop_caches()
+        self._compliance = KeptCompliance(self.surface)
+        self._last_step = None
+        self._chords.reset()
+
+    def _snapshot_contact(self) -> dict[str, Any]:
+        before = self._pose_before
+        return {
+            "warm_n": self._warm.copy(),
+            "pose_before": None if before is None else (before[0].copy(), before[1].copy()),
+        }
+
+    def _restore_contact(self, snapshot: dict[str, Any]) -> None:
+        self._warm[:] = snapshot["warm_n"]
+        before = snapshot["pose_before"]
+        self._pose_before = None if before is None else (before[0].copy(), before[1].copy())
+
     def _advance(
-        self,
+        self, h: float
     ) -> tuple[StepStatus, NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
         if self.sim.config.mode is IntegrationMode.PAPER:
-            outcome = self._paper_step()
+            outcome = self._paper_step(h)
         else:
-            outcome = self._subdivided_robust_step(self.sim.config.tissue_dt, 0)
+            outcome = self._subdivided_robust_step(h, 0)
         self._pose_before = (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
         return outcome
 
@@ -702,8 +720,8 @@ class LagrangeContact(FEContactModel):
 
     # ------------------------------------------------------------------ paper
 
-    def _paper_step(self):
-        sim, h = self.sim, self.sim.config.tissue_dt
+    def _paper_step(self, h: float):
+        sim = self.sim
         start = time.perf_counter()
         integrator = sim.integrator
         x, v = sim.positions.copy(), sim.velocities.copy()

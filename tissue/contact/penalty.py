@@ -251,12 +251,12 @@ class PenaltyContact(FEContactModel):
         self.augmentations = 0
 
     def _advance(
-        self,
+        self, h: float
     ) -> tuple[StepStatus, NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
         augmented = self.params.augmented
         if augmented is None:
             augmented = self.sim.config.mode is IntegrationMode.ROBUST
-        result = self._augmented_step() if augmented else self.sim.step(terms=(self.term,))
+        result = self._augmented_step(h) if augmented else self.sim.step((self.term,), h)
         # Forces at the state the step ended in: the springs' final pull on the probe.
         self.term.evaluate(self.sim.positions)
         contacts, magnitudes = self.term.last_contacts, self.term.last_magnitudes
@@ -265,12 +265,11 @@ class PenaltyContact(FEContactModel):
         diagnostics["augmentations"] = self.augmentations if augmented else 0
         return result.status, points, forces, diagnostics
 
-    def _augmented_step(self) -> Any:
-        """Solve the step, re-solving from the same start with augmented offsets while a
-        point is deeper than the tolerance (see the module docstring)."""
+    def _augmented_step(self, dt: float) -> Any:
+        """Solve a step of ``dt`` [s], re-solving from the same start with augmented offsets
+        while a point is deeper than the tolerance (see the module docstring)."""
         sim = self.sim
         started = time.perf_counter()
-        dt = sim.config.tissue_dt
         dofs, targets = sim.constraints()
         x0, v0 = sim.positions.copy(), sim.velocities.copy()
         for round_index in range(self.params.max_augmentations + 1):
@@ -290,6 +289,13 @@ class PenaltyContact(FEContactModel):
     def _reset_tissue(self) -> None:
         super()._reset_tissue()
         self.term.offsets[:] = 0.0
+        self.term._offsets_version += 1
+
+    def _snapshot_contact(self) -> dict[str, Any]:
+        return {"offsets": self.term.offsets.copy()}
+
+    def _restore_contact(self, snapshot: dict[str, Any]) -> None:
+        self.term.offsets[:] = snapshot["offsets"]
         self.term._offsets_version += 1
 
 

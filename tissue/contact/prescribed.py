@@ -129,8 +129,30 @@ class PrescribedContact(FEContactModel):
         """The nodes currently moved with the probe."""
         return self._nodes
 
+    def _snapshot_contact(self) -> dict[str, Any]:
+        def copied(value: NDArray[np.float64] | None) -> NDArray[np.float64] | None:
+            return None if value is None else value.copy()
+
+        return {
+            "nodes": self._nodes.copy(),
+            "local": self._local.copy(),
+            "last_reaction": copied(self._last_reaction),
+            "last_position": copied(self._last_position),
+            "step_motion": copied(self._step_motion),
+        }
+
+    def _restore_contact(self, snapshot: dict[str, Any]) -> None:
+        def copied(value: NDArray[np.float64] | None) -> NDArray[np.float64] | None:
+            return None if value is None else np.array(value)
+
+        self._nodes = np.array(snapshot["nodes"], dtype=np.int64)
+        self._local = np.array(snapshot["local"], dtype=np.float64)
+        self._last_reaction = copied(snapshot["last_reaction"])
+        self._last_position = copied(snapshot["last_position"])
+        self._step_motion = copied(snapshot["step_motion"])
+
     def _advance(
-        self,
+        self, h: float
     ) -> tuple[StepStatus, NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
         position = self.probe.position_world.copy()
         before = self._last_position
@@ -151,7 +173,7 @@ class PrescribedContact(FEContactModel):
             self.sim.prescribe(self._nodes, self.probe.to_world_frame(self._local))
         else:
             self.sim.clear_prescribed()
-        result = self.sim.step()
+        result = self.sim.step(dt=h)
         reaction = result.reaction_forces[self._nodes]  # on the tissue
         self._last_reaction = reaction
         points = self.sim.positions[self._nodes].copy()
