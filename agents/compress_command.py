@@ -18,6 +18,7 @@ from agents.compress import (
 from tissue.contact.stability import StabilityMonitor
 from tissue.errors import ConfigError
 from tissue.mesh import TetMesh
+from tissue.paper_scene import spring_nodes_to_volume
 from tissue.probe import ProbeShape, parse_probe_spec
 
 # Synthetic default depths past first contact [m] (the study's: 10, 20, 25, 30 mm).
@@ -42,23 +43,6 @@ def _load_mesh(args: argparse.Namespace) -> TetMesh:
     from tissue.phantom import breast_phantom, parse_level
 
     return breast_phantom(parse_level(mesh_arg))
-
-
-def spring_nodes_to_volume(mesh: TetMesh, spring_vertices: np.ndarray) -> tuple[int, ...]:
-    """The volume boundary nodes nearest the published spring vertices (collision surface).
-
-    The paper attaches the probe to collision-surface vertices; our prescribed displacement
-    acts on volume nodes, so each vertex is replaced by the nearest boundary node.
-    """
-    from scipy.spatial import cKDTree
-
-    from tissue.mesh import boundary_faces
-
-    assert mesh.collision_surface is not None
-    boundary = np.unique(boundary_faces(mesh.tets))
-    points = mesh.collision_surface.rest_vertices[np.asarray(spring_vertices)]
-    _, nearest = cKDTree(mesh.nodes[boundary]).query(points)
-    return tuple(int(n) for n in np.unique(boundary[nearest]))
 
 
 def resolve_online(online: bool | None, method: str, mode: str) -> bool:

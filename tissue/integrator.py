@@ -271,8 +271,6 @@ class IncrementalPotential:
         frames: NodeFrames | None = None,
     ) -> None:
         cfg = integrator.config
-        if frames is not None and terms:
-            raise ConfigError("node frames and energy terms cannot be combined in one step")
         self.frames = frames
         self.integrator = integrator
         self.h = h
@@ -398,7 +396,9 @@ class IncrementalPotential:
             rhs,
             self.constrained,
             values,
-            _rank_one_terms(self.terms, y3),
+            # Rank-one terms are world-coordinate vectors: with frames the kept factorisation
+            # is not corrected for them (CG makes up the difference).
+            _rank_one_terms(self.terms, y3) if self.frames is None else None,
             frames=self.frames,
         )
 

@@ -36,7 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tissue.errors import MeshError
-from tissue.mesh import TetMesh
+from tissue.mesh import TetMesh, boundary_faces
 from tissue.mesh_io import load_tet_mesh
 from tissue.phantom import (
     GENERATOR_VERSION,
@@ -210,6 +210,22 @@ def load_paper_scene(directory: str | Path) -> PaperScene:
         lesion_points=lesion_points,
         directory=directory,
     )
+
+
+def spring_nodes_to_volume(mesh: TetMesh, spring_vertices: NDArray[np.int64]) -> tuple[int, ...]:
+    """The volume boundary nodes nearest the published spring vertices (collision surface).
+
+    The paper attaches the probe to collision-surface vertices; our prescribed displacement
+    acts on volume nodes, so each vertex is replaced by the nearest boundary node.
+    """
+    from scipy.spatial import cKDTree
+
+    if mesh.collision_surface is None:
+        raise MeshError("the published node sets index a collision surface; this mesh has none")
+    boundary = np.unique(boundary_faces(mesh.tets))
+    points = mesh.collision_surface.rest_vertices[np.asarray(spring_vertices)]
+    _, nearest = cKDTree(mesh.nodes[boundary]).query(points)
+    return tuple(int(n) for n in np.unique(boundary[nearest]))
 
 
 def _read_matrix(path: Path, shape: tuple[int, ...]) -> NDArray[np.float64]:

@@ -29,19 +29,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from agents.compress import Waypoint, plan_scene, straight_path
-from agents.compress_command import spring_nodes_to_volume
 from agents.study.spec import NATIVE_LEVEL
 from tissue.contact.base import contact_surface
-from tissue.contact.placement import first_contact_pose, ray_surface_hit
+from tissue.contact.placement import first_contact_pose, radial_roll_rad, skin_normal_above
 from tissue.errors import ConfigError
 from tissue.mesh import TetMesh, boundary_faces, triangle_grid
+from tissue.paper_scene import spring_nodes_to_volume
 from tissue.probe import Probe, ProbeShape
 
 #: Where ``--scene paper`` looks, in order: this variable, then ``shared/paper-scene`` beside
 #: the checkout, then under the working directory.
 PAPER_SCENE_ENV_VAR = "PROBEGYM_PAPER_SCENE"
-# Collision triangles within this distance of the skin point give its normal [m].
-_NORMAL_RADIUS_M = 0.008
 
 
 def default_paper_scene_dir() -> Path:
@@ -169,40 +167,6 @@ def _fixed_base_samples(mesh: TetMesh, per_edge: int = 6) -> NDArray[np.float64]
     weights = triangle_grid(per_edge)  # (g, 3)
     corners = mesh.nodes[faces]  # (f, 3, 3)
     return np.einsum("gk,fka->fga", weights, corners).reshape(-1, 3)
-
-
-def radial_roll_rad(shape: ProbeShape, direction: NDArray[np.float64]) -> float:
-    """Roll that lays the probe's long axis down the skin's slope (a radial scan plane).
-
-    Breast sonographers scan radially; on the dome's flanks it also gives frictionless
-    tissue 53 mm of face to cross, not 13 mm, before it can slip out downhill. Zero where
-    the skin is level.
-    """
-    probe = Probe.looking_along(shape, np.zeros(3), direction)
-    rotation = probe.rotation_world()
-    x_axis, z_axis = rotation[:, 0], rotation[:, 2]
-    down = np.array([0.0, 0.0, -1.0])
-    downhill = down - (down @ direction) * direction
-    if np.linalg.norm(downhill) < 1e-6:
-        return 0.0
-    # looking_along rolls x towards -z: the roll taking x onto the downhill direction.
-    return float(np.arctan2(-(downhill @ z_axis), downhill @ x_axis))
-
-
-def skin_normal_above(mesh: TetMesh, point: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Outward unit normal of the collision surface where the vertical through ``point``
-    leaves it upwards (area-weighted over the triangles within 8 mm), shape (3,)."""
-    assert mesh.collision_surface is not None
-    vertices = mesh.collision_surface.rest_vertices
-    triangles = mesh.collision_surface.triangles
-    hit = ray_surface_hit(vertices, triangles, np.asarray(point), np.array([0.0, 0.0, 1.0]))
-    if hit is None:
-        raise ConfigError(f"no skin above the point {np.round(point, 4).tolist()}")
-    a, b, c = (vertices[triangles[:, i]] for i in range(3))
-    area_normals = 0.5 * np.cross(b - a, c - a)
-    near = np.linalg.norm((a + b + c) / 3.0 - hit, axis=1) < _NORMAL_RADIUS_M
-    normal = area_normals[near].sum(axis=0)
-    return normal / np.linalg.norm(normal)
 
 
 def open_scene(scene: str) -> StudyScene:

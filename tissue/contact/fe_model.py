@@ -12,11 +12,13 @@ from numpy.typing import NDArray
 
 from tissue.contact.base import ContactModel, SurfacePoints, boundary_surface, contact_surface
 from tissue.errors import ConfigError
-from tissue.integrator import IntegrationMode
+from tissue.integrator import IncrementalPotential, IntegrationMode
 from tissue.material import TissueMaterials
-from tissue.mesh import TetMesh
+from tissue.mesh import TetMesh, node_dofs
 from tissue.probe import Probe, ProbeShape
 from tissue.simulator import SimulationConfig, TissueSimulator
+from tissue.solvers import DirectFactorizer, Factorization
+from tissue.wrench_stiffness import ContactConstraints
 
 # In robust mode, contact acts on the volume's boundary nodes instead of the collision
 # surface once the boundary has this many times more points. The collision surface (~500
@@ -208,6 +210,7 @@ class FEContactModel(ContactModel):
                 f"got {type(params).__name__}"
             )
         self.params = params if params is not None else self.params_type()
+        self._tangent_factorizer: DirectFactorizer | None = None
 
     @property
     def node_positions(self) -> NDArray[np.float64]:
@@ -226,6 +229,42 @@ class FEContactModel(ContactModel):
 
     def drop_caches(self) -> None:
         self.sim.integrator.drop_caches()
+
+    def step_tangent(self) -> tuple[Factorization, NDArray[np.bool_]]:
+        """A factorisation of the tangent of one step of ``dt`` at the present state (the
+        robust incremental potential's Hessian, contact left out, the fixed base
+        eliminated) and the eliminated dofs, (3N,) bool: for
+        :func:`tissue.wrench_stiffness.wrench_stiffness`. Leaves the step's own solver
+        untouched."""
+        sim = self.sim
+        integrator = sim.integrator
+        fixed = node_dofs(self.mesh.fixed_nodes)
+        x = sim.positions.copy()
+        potential = IncrementalPotential(
+            integrator, x, sim.velocities.copy(), self.dt, fixed, x.reshape(-1)[fixed], ()
+        )
+        system = potential.hessian_system(x.reshape(-1), np.zeros(x.size), project=False)
+        if self._tangent_factorizer is None:
+            self._tangent_factorizer = DirectFactorizer(integrator.solver.config.direct_backend)
+        factorization, _ = self._tangent_factorizer.factorize(system.matrix, system.constrained)
+        return factorization, system.constrained
+
+    def _constraint_rows(
+        self,
+        surface: SurfacePoints,
+        points: NDArray[np.int64],
+        directions: NDArray[np.float64],
+        compliance_m_per_n: float,
+    ) -> ContactConstraints:
+        """Constraints at surface ``points`` (indices) along ``directions`` (k, 3)."""
+        positions = surface.positions(self.sim.positions)[points]
+        contacts = Contacts(points, positions, np.zeros(points.size), directions)
+        constrained = np.zeros(self.mesh.dof_count, dtype=bool)
+        constrained[node_dofs(self.mesh.fixed_nodes)] = True
+        rows = constraint_rows(surface, contacts, self.mesh.dof_count, constrained)
+        return ContactConstraints(
+            rows, positions, directions, np.full(points.size, compliance_m_per_n)
+        )
 
     def _snapshot_tissue(self) -> dict[str, Any]:
         sim = self.sim

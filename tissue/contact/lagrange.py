@@ -116,6 +116,7 @@ from tissue.solvers import (
     vector_norm,
 )
 from tissue.status import StepStatus
+from tissue.wrench_stiffness import ContactConstraints
 
 # Robust steps on systems with at least this many unknowns keep a factorisation across
 # Newton iterations and steps (see the module docstring); smaller ones refactorise every
@@ -315,6 +316,13 @@ class LagrangeContact(FEContactModel):
         self._compliance = KeptCompliance(self.surface)
         self._last_step = None
         self._chords.reset()
+
+    def contact_constraints(self) -> ContactConstraints:
+        """The contacts pressing at the end of the last step, exact (zero compliance)."""
+        active = np.flatnonzero(self._warm > 0.0)
+        positions = self.surface.positions(self.sim.positions)[active]
+        _, normal = self.probe.signed_distance_world(positions)
+        return self._constraint_rows(self.surface, active, normal, 0.0)
 
     def drop_caches(self) -> None:
         super().drop_caches()

@@ -78,8 +78,10 @@ from tissue.integrator import IntegrationMode, TermEvaluation
 from tissue.material import TissueMaterials
 from tissue.mesh import TetMesh
 from tissue.probe import Probe
+from tissue.simulator import StepResult, TissueSimulator
 from tissue.solvers import RankOneTerms
 from tissue.status import StepStatus
+from tissue.wrench_stiffness import ContactConstraints
 
 # The default k_s makes a contact point as stiff as this many times the tissue under it
 # (E times the surface's mean edge length): penetrations stay about 2 % of the indentation.
@@ -268,28 +270,31 @@ class PenaltyContact(FEContactModel):
     def _augmented_step(self, dt: float) -> Any:
         """Solve a step of ``dt`` [s], re-solving from the same start with augmented offsets
         while a point is deeper than the tolerance (see the module docstring)."""
-        sim = self.sim
-        started = time.perf_counter()
-        dofs, targets = sim.constraints()
-        x0, v0 = sim.positions.copy(), sim.velocities.copy()
-        for round_index in range(self.params.max_augmentations + 1):
-            outcome = sim.integrator.step(x0, v0, dt, dofs, targets, (self.term,))
-            if outcome.status in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
-                break
-            penetration = self.term.penetration_m(outcome.positions)
-            if (
-                penetration <= self.params.penetration_tolerance_m
-                or round_index == self.params.max_augmentations
-            ):
-                break
-            self.term.augment(outcome.positions)
-        self.augmentations = round_index
-        return sim.commit(outcome, dt, started)
+        result, self.augmentations = augmented_step(
+            self.sim,
+            self.term,
+            dt,
+            self.params.penetration_tolerance_m,
+            self.params.max_augmentations,
+        )
+        return result
 
     def _reset_tissue(self) -> None:
         super()._reset_tissue()
         self.term.offsets[:] = 0.0
         self.term._offsets_version += 1
+
+    def contact_constraints(self) -> ContactConstraints:
+        """The springs acting at the end of the last step, each of compliance 1 / k_s."""
+        self.term.evaluate(self.sim.positions)  # the springs at the present state
+        contacts = self.term.last_contacts
+        active = self.term.last_magnitudes > 0.0
+        return self._constraint_rows(
+            self.surface,
+            contacts.points[active],
+            contacts.normal[active],
+            1.0 / self.stiffness_n_per_m,
+        )
 
     def _snapshot_contact(self) -> dict[str, Any]:
         return {"offsets": self.term.offsets.copy()}
@@ -297,6 +302,32 @@ class PenaltyContact(FEContactModel):
     def _restore_contact(self, snapshot: dict[str, Any]) -> None:
         self.term.offsets[:] = snapshot["offsets"]
         self.term._offsets_version += 1
+
+
+def augmented_step(
+    sim: TissueSimulator,
+    term: PenaltyTerm,
+    dt: float,
+    tolerance_m: float,
+    max_augmentations: int,
+) -> tuple[StepResult, int]:
+    """One step of ``dt`` [s] of ``sim`` (its prescribed set and node frames included) with
+    the springs of ``term``, re-solved from the same start with augmented offsets while a
+    point lies deeper than ``tolerance_m`` [m], at most ``max_augmentations`` times (see the
+    module docstring). Returns the committed step and the augmentations made."""
+    started = time.perf_counter()
+    dofs, targets = sim.constraints()
+    x0, v0 = sim.positions.copy(), sim.velocities.copy()
+    frames = sim.boundary_state()["frames"]
+    for round_index in range(max_augmentations + 1):
+        outcome = sim.integrator.step(x0, v0, dt, dofs, targets, (term,), frames)
+        if outcome.status in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
+            break
+        penetration = term.penetration_m(outcome.positions)
+        if penetration <= tolerance_m or round_index == max_augmentations:
+            break
+        term.augment(outcome.positions)
+    return sim.commit(outcome, dt, started), round_index
 
 
 def default_stiffness_n_per_m(

@@ -5,12 +5,15 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from tissue.contact.base import SurfacePoints
+from tissue.contact.base import SurfacePoints, contact_surface
 from tissue.errors import TissueInputError
+from tissue.mesh import TetMesh
 from tissue.probe import Probe, ProbeShape
 
 # Iterations of the first-contact search; each removes the overlap found at the last pose.
 _CONTACT_SEARCH_ITERATIONS = 8
+# Skin triangles within this distance of a skin point give its normal [m].
+_NORMAL_RADIUS_M = 0.008
 
 
 def ray_surface_hit(
@@ -83,3 +86,45 @@ def first_contact_pose(
             break
         position = position + closest * direction  # back off by the overlap, or close the gap
     return position, probe.quat_wxyz.copy()
+
+
+def radial_roll_rad(shape: ProbeShape, direction: NDArray[np.float64]) -> float:
+    """Roll that lays the probe's long axis down the skin's slope (a radial scan plane).
+
+    Breast sonographers scan radially; on the dome's flanks it also gives frictionless
+    tissue 53 mm of face to cross, not 13 mm, before it can slip out downhill. Zero where
+    the skin is level.
+    """
+    probe = Probe.looking_along(shape, np.zeros(3), direction)
+    rotation = probe.rotation_world()
+    x_axis, z_axis = rotation[:, 0], rotation[:, 2]
+    down = np.array([0.0, 0.0, -1.0])
+    downhill = down - (down @ direction) * direction
+    if np.linalg.norm(downhill) < 1e-6:
+        return 0.0
+    # looking_along rolls x towards -z: the roll taking x onto the downhill direction.
+    return float(np.arctan2(-(downhill @ z_axis), downhill @ x_axis))
+
+
+def skin_normal_above(
+    mesh: TetMesh, point: NDArray[np.float64], up: NDArray[np.float64] | None = None
+) -> NDArray[np.float64]:
+    """Outward unit normal of the skin (the collision surface, or the volume's boundary) at
+    rest, where the line through ``point`` along ``up`` (default +z) leaves it, area-weighted
+    over the triangles within 8 mm, shape (3,)."""
+    surface = contact_surface(mesh)
+    collision = mesh.collision_surface
+    vertices = collision.rest_vertices if collision is not None else surface.positions(mesh.nodes)
+    triangles = surface.triangles
+    direction = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=np.float64)
+    hit = ray_surface_hit(vertices, triangles, np.asarray(point, dtype=np.float64), direction)
+    if hit is None:
+        raise TissueInputError(
+            f"no skin above the point {np.round(point, 4).tolist()} along "
+            f"{np.round(direction, 3).tolist()}; choose a point inside the tissue"
+        )
+    a, b, c = (vertices[triangles[:, i]] for i in range(3))
+    area_normals = 0.5 * np.cross(b - a, c - a)
+    near = np.linalg.norm((a + b + c) / 3.0 - hit, axis=1) < _NORMAL_RADIUS_M
+    normal = area_normals[near].sum(axis=0)
+    return normal / np.linalg.norm(normal)

@@ -43,14 +43,20 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from tissue.contact.base import ContactMethod
 from tissue.contact.fe_model import FEContactModel
+from tissue.contact.penalty import PenaltyTerm, augmented_step, default_stiffness_n_per_m
 from tissue.errors import ConfigError
+from tissue.integrator import IntegrationMode
 from tissue.mesh import boundary_faces
 from tissue.status import StepStatus
+from tissue.wrench_stiffness import ContactConstraints
 
+# Re-solves of a guarded step at most (see PrescribedParams.skin_guard).
+_GUARD_ROUNDS = 5
 # Online mode releases a node at once if the probe would pull it back by more than this [m]
 # in one step (a sudden withdrawal); sliding over the curved skin pulls far less per step.
 _PULL_RELEASE_M = 0.0005
@@ -67,18 +73,30 @@ class PrescribedParams:
         capture_distance_m: (offline) boundary nodes this close to the probe at first
             contact form the set [m].
         node_set: (offline) a given set of volume node indices instead.
+        skin_guard: (robust mode) keep the skin -- the collision surface, which on a coarse
+            volume bulges between the boundary nodes the method holds -- out of the probe:
+            a skin point inside it is pushed out by an augmented-Lagrangian spring solved in
+            the same Newton step as the held nodes, the step re-solved until the deepest
+            lies within ``skin_guard_tolerance_m`` (see the module docstring).
+        skin_guard_tolerance_m: how deep a skin point may stay inside the probe [m].
     """
 
     online: bool = False
     sliding: bool = False
     capture_distance_m: float = 0.002
     node_set: tuple[int, ...] | None = field(default=None)
+    skin_guard: bool = False
+    skin_guard_tolerance_m: float = 1e-4
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.capture_distance_m) and self.capture_distance_m >= 0):
             raise ConfigError(f"capture_distance_m must be >= 0; got {self.capture_distance_m!r}")
         if self.online and self.node_set is not None:
             raise ConfigError("a given node_set and online=True exclude each other; choose one")
+        if not (np.isfinite(self.skin_guard_tolerance_m) and self.skin_guard_tolerance_m > 0):
+            raise ConfigError(
+                f"skin_guard_tolerance_m must be > 0 m; got {self.skin_guard_tolerance_m!r}"
+            )
         if self.sliding and not self.online:
             raise ConfigError(
                 "sliding=True needs online=True: the paper's fixed node set moves rigidly with "
@@ -105,6 +123,15 @@ class PrescribedContact(FEContactModel):
                     f"node_set must hold node indices in [0, {self.mesh.node_count - 1}]; got "
                     f"{given.size} indices"
                 )
+        self._guard: PenaltyTerm | None = None
+        if self.params.skin_guard:
+            if self.sim.config.mode is not IntegrationMode.ROBUST:
+                raise ConfigError(
+                    "skin_guard needs robust mode (its springs are re-solved in Newton's "
+                    "step); the paper configuration keeps the paper's node set alone"
+                )
+            stiffness = default_stiffness_n_per_m(self.skin, self.mesh, self.sim.materials)
+            self._guard = PenaltyTerm(self.skin, self.probe, stiffness, 0.0)
         self._nodes = np.zeros(0, dtype=np.int64)
         self._local = np.zeros((0, 3))  # each node's position in the probe frame
         self._last_reaction: NDArray[np.float64] | None = None
@@ -114,6 +141,9 @@ class PrescribedContact(FEContactModel):
 
     def _reset_tissue(self) -> None:
         super()._reset_tissue()
+        if self._guard is not None:
+            self._guard.offsets[:] = 0.0
+            self._guard._offsets_version += 1
         self._nodes = np.zeros(0, dtype=np.int64)
         self._local = np.zeros((0, 3))
         self._last_reaction = None
@@ -129,11 +159,48 @@ class PrescribedContact(FEContactModel):
         """The nodes currently moved with the probe."""
         return self._nodes
 
+    def contact_constraints(self) -> ContactConstraints:
+        """The held nodes: three exact constraints each (sticking), or one along the probe's
+        normal (sliding)."""
+        nodes = self._nodes
+        positions = self.sim.positions[nodes]
+        if self.params.sliding:
+            _, normal = self.probe.signed_distance_world(positions)
+            directions, owners = normal, np.arange(nodes.size)
+        else:
+            directions = np.tile(np.eye(3), (nodes.size, 1))
+            owners = np.repeat(np.arange(nodes.size), 3)
+        count = owners.size
+        columns = (3 * nodes[owners])[:, None] + np.arange(3)[None, :]
+        rows = sp.csr_matrix(
+            (directions.reshape(-1), columns.reshape(-1), np.arange(0, 3 * count + 1, 3)),
+            shape=(count, self.mesh.dof_count),
+        )
+        held = ContactConstraints(rows, positions[owners], directions, np.zeros(count))
+        if self._guard is None:
+            return held
+        self._guard.evaluate(self.sim.positions)
+        contacts = self._guard.last_contacts
+        active = self._guard.last_magnitudes > 0.0
+        springs = self._constraint_rows(
+            self.skin,
+            contacts.points[active],
+            contacts.normal[active],
+            1.0 / self._guard.stiffness,
+        )
+        return ContactConstraints(
+            sp.vstack([held.rows, springs.rows]).tocsr(),
+            np.concatenate([held.points_world_m, springs.points_world_m]),
+            np.concatenate([held.directions_world, springs.directions_world]),
+            np.concatenate([held.compliance_m_per_n, springs.compliance_m_per_n]),
+        )
+
     def _snapshot_contact(self) -> dict[str, Any]:
         def copied(value: NDArray[np.float64] | None) -> NDArray[np.float64] | None:
             return None if value is None else value.copy()
 
         return {
+            "guard_offsets": None if self._guard is None else self._guard.offsets.copy(),
             "nodes": self._nodes.copy(),
             "local": self._local.copy(),
             "last_reaction": copied(self._last_reaction),
@@ -145,6 +212,9 @@ class PrescribedContact(FEContactModel):
         def copied(value: NDArray[np.float64] | None) -> NDArray[np.float64] | None:
             return None if value is None else np.array(value)
 
+        if self._guard is not None:
+            self._guard.offsets[:] = snapshot["guard_offsets"]
+            self._guard._offsets_version += 1
         self._nodes = np.array(snapshot["nodes"], dtype=np.int64)
         self._local = np.array(snapshot["local"], dtype=np.float64)
         self._last_reaction = copied(snapshot["last_reaction"])
@@ -173,11 +243,31 @@ class PrescribedContact(FEContactModel):
             self.sim.prescribe(self._nodes, self.probe.to_world_frame(self._local))
         else:
             self.sim.clear_prescribed()
-        result = self.sim.step(dt=h)
+        guard_rounds = 0
+        if self._guard is None:
+            result = self.sim.step(dt=h)
+        else:
+            result, guard_rounds = augmented_step(
+                self.sim, self._guard, h, self.params.skin_guard_tolerance_m, _GUARD_ROUNDS
+            )
         reaction = result.reaction_forces[self._nodes]  # on the tissue
         self._last_reaction = reaction
         points = self.sim.positions[self._nodes].copy()
+        forces = -reaction
+        guarded = 0
+        if self._guard is not None:
+            # The guard's springs at the step's end push the skin out of the probe: their
+            # reaction is on the probe too.
+            self._guard.evaluate(self.sim.positions)
+            spring_points, spring_forces = self.surface_points_on_probe(
+                self._guard.last_contacts, self._guard.last_magnitudes
+            )
+            guarded = int(spring_points.shape[0])
+            points = np.concatenate([points, spring_points])
+            forces = np.concatenate([forces, spring_forces])
         diagnostics = {
+            "guarded_skin_points": guarded,
+            "guard_augmentations": guard_rounds,
             "contact_nodes": int(self._nodes.size),
             "newton_iterations": result.newton_iterations,
             "linear_iterations": result.linear_iterations,
@@ -185,7 +275,7 @@ class PrescribedContact(FEContactModel):
             "subdivisions": result.subdivisions,
             "min_volume_ratio": result.min_volume_ratio,
         }
-        return result.status, points, -reaction, diagnostics
+        return result.status, points, forces, diagnostics
 
     def _capture_offline(self) -> None:
         if self.params.node_set is not None:

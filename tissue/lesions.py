@@ -1,0 +1,111 @@
+"""The lesions of a tissue: where they are at rest, and their deformed centroids.
+
+A lesion is a region of the mesh (label k >= 1, its own stiffer material) or, on meshes that
+carry lesions only as tracked points (the published scene: one point per tumour, the contour
+point closest to the probe, no lesion sub-volume), a point lesion with no tets.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tissue.mesh import TetMesh, signed_tet_volumes
+
+
+@dataclass(frozen=True)
+class Lesion:
+    """One lesion.
+
+    Attributes:
+        label: its number, 1-based (its region label where it has tets).
+        name: its name (``lesion_3``, ``tumor1``).
+        rest_centre_m: its centre at rest [m], (3,): the volume-weighted centroid of its
+            tets (what :meth:`LesionTracker.centroids` gives at rest), or a point lesion's
+            tracked point.
+        radius_m: its radius [m]: the phantom's specified radius (its tets keep that
+            sphere's volume), else the radius of the sphere of its tets' volume; 0 for a
+            point lesion.
+        tets: indices of its tets, (k,) (empty for a point lesion).
+    """
+
+    label: int
+    name: str
+    rest_centre_m: NDArray[np.float64]
+    radius_m: float
+    tets: NDArray[np.int64]
+
+
+class LesionTracker:
+    """The lesions of a mesh and their deformed centroids.
+
+    A lesion with tets moves with their volume-weighted centroid (exact for the deformed
+    piecewise-linear geometry); a point lesion with its landmark (barycentric embedding).
+
+    Args:
+        mesh: the tissue mesh.
+    """
+
+    def __init__(self, mesh: TetMesh) -> None:
+        self._mesh = mesh
+        lesions: list[Lesion] = []
+        given = mesh.metadata.get("lesion_radii_m")
+        radii = None if given is None else np.asarray(given, dtype=np.float64).reshape(-1)
+        volumes = mesh.tet_volumes()
+        for label in range(1, len(mesh.region_names)):
+            tets = np.flatnonzero(mesh.region == label)
+            if tets.size == 0:
+                continue
+            weight = volumes[tets]
+            centroid = (weight[:, None] * mesh.nodes[mesh.tets[tets]].mean(axis=1)).sum(
+                axis=0
+            ) / weight.sum()
+            radius = float((3.0 * weight.sum() / (4.0 * np.pi)) ** (1.0 / 3.0))
+            if radii is not None and radii.size >= label:
+                radius = float(radii[label - 1])
+            lesions.append(Lesion(label, mesh.region_names[label], centroid, radius, tets))
+        self._point_landmarks = np.zeros(0, dtype=np.int64)
+        if not lesions and mesh.landmarks is not None:
+            # Lesions known only as tracked points.
+            for index, name in enumerate(mesh.landmarks.names):
+                rest = mesh.landmarks.rest_positions[index].copy()
+                lesions.append(Lesion(index + 1, name, rest, 0.0, np.zeros(0, dtype=np.int64)))
+            self._point_landmarks = np.arange(len(lesions), dtype=np.int64)
+        self.lesions: tuple[Lesion, ...] = tuple(lesions)
+        # All lesion tets in one array, and which lesion each belongs to.
+        if lesions and self._point_landmarks.size == 0:
+            self._tets = mesh.tets[np.concatenate([lesion.tets for lesion in lesions])]
+            self._owner = np.repeat(
+                np.arange(len(lesions)), [lesion.tets.size for lesion in lesions]
+            )
+        else:
+            self._tets = np.zeros((0, 4), dtype=np.int64)
+            self._owner = np.zeros(0, dtype=np.int64)
+
+    @property
+    def count(self) -> int:
+        return len(self.lesions)
+
+    def centroids(self, node_positions: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Deformed lesion centroids [m], (lesion_count, 3), from node positions [m]."""
+        if self._point_landmarks.size:
+            landmarks = self._mesh.landmarks
+            assert landmarks is not None
+            return landmarks.positions(node_positions)[self._point_landmarks]
+        if not self.lesions:
+            return np.zeros((0, 3))
+        corners = node_positions[self._tets]
+        volume = signed_tet_volumes(node_positions, self._tets)
+        moments = volume[:, None] * corners.mean(axis=1)
+        count = len(self.lesions)
+        total = np.bincount(self._owner, weights=volume, minlength=count)
+        centroid = np.stack(
+            [
+                np.bincount(self._owner, weights=moments[:, axis], minlength=count)
+                for axis in range(3)
+            ],
+            axis=1,
+        )
+        return centroid / total[:, None]

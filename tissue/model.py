@@ -1,0 +1,426 @@
+"""The front door's tissue: :func:`make_tissue` builds a :class:`Tissue` from a
+:class:`~tissue.spec.TissueSpec`; each :meth:`Tissue.step` takes the probe's pose and returns a
+:class:`TissueStep`.
+
+The probe frame (every shape, :mod:`tissue.probe`): origin at the centre of the contact face,
++y the pressing direction (into the tissue), x the face's long axis (the ultrasound image's
+lateral axis), z its short axis (elevation); the body lies at y < 0. A pose is probe-to-world:
+p_world = R p_probe + position, with R from the quaternion (w, x, y, z), MuJoCo's order.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from tissue.contact import make_contact_model
+from tissue.contact.base import ContactMethod, ContactModel, ContactResult
+from tissue.contact.placement import first_contact_pose, radial_roll_rad, skin_normal_above
+from tissue.errors import TissueInputError
+from tissue.lesions import Lesion, LesionTracker
+from tissue.probe import ProbeShape, quat_to_matrix
+from tissue.spec import ResolvedTissue, TissueSpec, resolve_spec
+from tissue.status import StepStatus
+from tissue.surface_mesh import SurfaceMesh, SurfaceView
+from tissue.wrench_stiffness import wrench_stiffness
+
+
+@dataclass(frozen=True)
+class StepDiagnostics:
+    """How a tissue step was solved.
+
+    Attributes:
+        iterations: Newton iterations (robust FE), 1 (a paper FE step's one linear solve),
+            or the substeps (PBD).
+        linear_iterations: iterations of the linear solver (0 for direct solves).
+        contact_count: contact points (or held nodes) carrying force at the step's end.
+        sub_motions: tissue steps the probe's motion was split into (1: none; see
+            :meth:`tissue.contact.base.ContactModel.step`).
+        subdivisions: times a robust step was halved to converge.
+        min_volume_ratio: the smallest det F of any tet after the step (None if unknown).
+        compute_ms: wall time of the step [ms] (not deterministic: keep it out of
+            anything compared between runs).
+        details: the strategy's own figures (augmentation rounds, response rounds, ...).
+    """
+
+    iterations: int
+    linear_iterations: int
+    contact_count: int
+    sub_motions: int
+    subdivisions: int
+    min_volume_ratio: float | None
+    compute_ms: float
+    details: Mapping[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class TissueStep:
+    """What one :meth:`Tissue.step` did. Frozen; arrays are the step's own.
+
+    Attributes:
+        status: ``ok`` or the instability met (:class:`tissue.status.StepStatus`); a
+            failed step (diverged, solver failed) keeps the state from before it.
+        time_s: simulated time after the step [s].
+        force_world_n: force of the tissue on the probe [N], (3,), world frame.
+        torque_world_nm: torque of those forces about the probe origin [N m], (3,).
+        contact_points_world_m: where contact forces act [m], (k, 3).
+        contact_forces_world_n: force on the probe at each [N], (k, 3).
+        skin_penetration_m: how far the skin (collision-surface vertices) lies inside the
+            probe's body [m], >= 0, measured the same way for every method.
+        landmarks_world_m: tracked points [m], (landmark_count, 3).
+        lesion_centroids_world_m: deformed lesion centroids [m], (lesion_count, 3).
+        diagnostics: how the step was solved.
+    """
+
+    status: StepStatus
+    time_s: float
+    force_world_n: NDArray[np.float64]
+    torque_world_nm: NDArray[np.float64]
+    contact_points_world_m: NDArray[np.float64]
+    contact_forces_world_n: NDArray[np.float64]
+    skin_penetration_m: float
+    landmarks_world_m: NDArray[np.float64]
+    lesion_centroids_world_m: NDArray[np.float64]
+    diagnostics: StepDiagnostics
+
+    @property
+    def ok(self) -> bool:
+        """Whether the step ended ``ok``."""
+        return self.status is StepStatus.OK
+
+
+@dataclass(frozen=True)
+class TissueState:
+    """A snapshot of a :class:`Tissue` (:meth:`Tissue.state`), to :meth:`Tissue.set_state`
+    a tissue built from the same spec. Picklable.
+
+    Attributes:
+        fingerprint: identifies the spec and mesh it belongs to.
+        time_s: simulated time [s].
+        data: the strategy's state (copied arrays).
+    """
+
+    fingerprint: str
+    time_s: float
+    data: dict[str, Any]
+
+
+def make_tissue(spec: TissueSpec | None = None, **overrides: Any) -> Tissue:
+    """Build a tissue: ``make_tissue(TissueSpec(...))`` or ``make_tissue(mesh=1363, ...)``.
+
+    The mesh is generated (phantom levels, cached on disk) or loaded, the profile resolved
+    (:func:`tissue.spec.resolve_spec`) and the model built with its one-time work done
+    (compiled kernels loaded, solver analysis; a PBD tissue calibrated for the mesh, cached).
+
+    Raises:
+        tissue.errors.TissueInputError: a bad spec (the message names the value, what was
+            expected and how to fix it).
+    """
+    if spec is None:
+        spec = TissueSpec.from_overrides(**overrides)
+    elif overrides:
+        raise TissueInputError(
+            f"give a TissueSpec or keyword settings, not both; got a spec and {sorted(overrides)}"
+        )
+    if not isinstance(spec, TissueSpec):
+        raise TissueInputError(f"spec must be a tissue.TissueSpec; got {type(spec).__name__}")
+    return Tissue(resolve_spec(spec))
+
+
+class Tissue:
+    """A hyperelastic breast (or any tet mesh) pressed by a rigid probe: the front door.
+
+    Build with :func:`make_tissue`. Each :meth:`step` moves the probe to a pose (see the
+    module docstring for the probe frame) and advances the tissue ``dt`` seconds. A physical
+    failure (divergence, inversion, a solve that fails) is a :class:`TissueStep` status,
+    never an exception; bad input raises :class:`tissue.errors.TissueInputError`.
+
+    Snapshots (:meth:`state`, :meth:`set_state`), copies and pickles continue bit for bit
+    alike: taking one drops the solver caches (kept factorisations, cached compliances), on
+    this tissue as on the copy, and the next step rebuilds them.
+    """
+
+    def __init__(self, resolved: ResolvedTissue) -> None:
+        self._resolved = resolved
+        self._model: ContactModel = make_contact_model(
+            resolved.method,
+            resolved.mesh,
+            resolved.probe_shape,
+            materials=resolved.materials,
+            config=resolved.config,
+            **({} if resolved.params is None else {"params": resolved.params}),
+        )
+        mesh = resolved.mesh
+        self._lesions = LesionTracker(mesh)
+        self._surface = SurfaceView(mesh, self._model.skin, self._lesions)
+        digest = hashlib.sha256(mesh.nodes.tobytes() + mesh.tets.tobytes()).hexdigest()[:16]
+        self._fingerprint = f"{resolved.spec.contact}/{resolved.spec.profile}/{digest}"
+
+    # ------------------------------------------------------------------ description
+
+    @property
+    def spec(self) -> TissueSpec:
+        """The spec this tissue was built from."""
+        return self._resolved.spec
+
+    @property
+    def resolved(self) -> ResolvedTissue:
+        """Every configuration the spec resolved to (materials, solver settings, ...)."""
+        return self._resolved
+
+    @property
+    def contact(self) -> ContactMethod:
+        return self._resolved.method
+
+    @property
+    def dt(self) -> float:
+        """The tissue time step [s]."""
+        return self._model.dt
+
+    @property
+    def time_s(self) -> float:
+        """Simulated time since the last reset [s]."""
+        return self._model.time_s
+
+    @property
+    def probe_shape(self) -> ProbeShape:
+        """The probe's geometry, in the probe frame."""
+        return self._resolved.probe_shape
+
+    @property
+    def rest_nodes_m(self) -> NDArray[np.float64]:
+        """Node positions at rest [m], (node_count, 3)."""
+        return self._resolved.mesh.nodes
+
+    @property
+    def tets(self) -> NDArray[np.int64]:
+        """Tet node indices, (tet_count, 4)."""
+        return self._resolved.mesh.tets
+
+    @property
+    def regions(self) -> NDArray[np.int64]:
+        """Region label per tet, (tet_count,): 0 tissue, k lesion k."""
+        return self._resolved.mesh.region
+
+    @property
+    def fixed_nodes(self) -> NDArray[np.int64]:
+        """Indices of the nodes held fixed (the chest wall)."""
+        return self._resolved.mesh.fixed_nodes
+
+    @property
+    def positions_m(self) -> NDArray[np.float64]:
+        """Current node positions [m], (node_count, 3), read-only."""
+        return self._model.node_positions
+
+    @property
+    def velocities_m_s(self) -> NDArray[np.float64]:
+        """Current node velocities [m/s], (node_count, 3), read-only."""
+        return self._model.node_velocities
+
+    @property
+    def lesions(self) -> tuple[Lesion, ...]:
+        """The lesions: rest centres, radii and tet sets."""
+        return self._lesions.lesions
+
+    @property
+    def landmark_names(self) -> tuple[str, ...]:
+        """Names of the tracked points (:attr:`TissueStep.landmarks_world_m`'s rows)."""
+        landmarks = self._resolved.mesh.landmarks
+        return () if landmarks is None else landmarks.names
+
+    def lesion_centroids_m(self) -> NDArray[np.float64]:
+        """Deformed lesion centroids now [m], (lesion_count, 3)."""
+        return self._lesions.centroids(self._model.node_positions)
+
+    def surface(self) -> SurfaceMesh:
+        """The skin and the lesions' boundaries as they are now, with region labels."""
+        return self._surface.at(self._model.node_positions)
+
+    def __repr__(self) -> str:
+        mesh = self._resolved.mesh
+        return (
+            f"Tissue({mesh.name}: {mesh.tet_count} tets, contact {self.spec.contact!r}, "
+            f"profile {self.spec.profile!r}, dt {self.dt} s)"
+        )
+
+    # ------------------------------------------------------------------ stepping
+
+    def step(self, probe_pos_world: ArrayLike, probe_quat_wxyz: ArrayLike) -> TissueStep:
+        """Move the probe to the pose and advance the tissue one :attr:`dt`.
+
+        Args:
+            probe_pos_world: the probe origin (contact-face centre) [m], (3,).
+            probe_quat_wxyz: the probe's orientation (w, x, y, z), (4,), any non-zero norm.
+
+        Raises:
+            TissueInputError: a non-finite or mis-shaped pose, or a zero quaternion.
+        """
+        _check_quat(probe_quat_wxyz)
+        result = self._model.step(probe_pos_world, probe_quat_wxyz)
+        return self._step_result(result)
+
+    def reset(
+        self, probe_pos_world: ArrayLike | None = None, probe_quat_wxyz: ArrayLike | None = None
+    ) -> None:
+        """Back to rest (time 0, contact state cleared); with a pose, the probe is placed
+        there (the next step sweeps from it, see :meth:`place_probe`)."""
+        self._model.reset()
+        if probe_pos_world is not None or probe_quat_wxyz is not None:
+            if probe_pos_world is None or probe_quat_wxyz is None:
+                raise TissueInputError("reset takes both the probe's position and quaternion")
+            self.place_probe(probe_pos_world, probe_quat_wxyz)
+
+    def place_probe(self, probe_pos_world: ArrayLike, probe_quat_wxyz: ArrayLike) -> None:
+        """Put the probe at a pose without stepping the tissue: the next step sweeps the
+        probe from here (without a placed pose, the first step after a reset takes the
+        probe's pose as it is, with no sweep)."""
+        _check_quat(probe_quat_wxyz)
+        self._model.place_probe(probe_pos_world, probe_quat_wxyz)
+
+    def touching_pose(
+        self,
+        target_world_m: ArrayLike,
+        direction_world: ArrayLike | None = None,
+        roll_rad: float | None = None,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The probe pose (position [m], quaternion wxyz) that just touches the skin at
+        rest above ``target_world_m`` [m] (a lesion centre, say), pressing along
+        ``direction_world`` (default: into the skin, along its inward normal where the
+        vertical through the target leaves it) with its long axis rolled by ``roll_rad``
+        (default: down the skin's slope, a radial scan plane)."""
+        target = np.asarray(target_world_m, dtype=np.float64).reshape(-1)
+        if target.shape != (3,) or not np.all(np.isfinite(target)):
+            raise TissueInputError(f"target must be 3 finite numbers [m]; got {target_world_m!r}")
+        mesh = self._resolved.mesh
+        if direction_world is None:
+            direction = -skin_normal_above(mesh, target)
+        else:
+            direction = np.asarray(direction_world, dtype=np.float64).reshape(-1)
+        shape = self._resolved.probe_shape
+        roll = radial_roll_rad(shape, direction) if roll_rad is None else float(roll_rad)
+        return first_contact_pose(self._model.skin, mesh.nodes, shape, target, direction, roll)
+
+    def wrench_stiffness(self) -> NDArray[np.float64] | None:
+        """How the tissue's wrench on the probe changes with the probe's displacement, now
+        (6 x 6, world frame, about the probe origin): K = -d(force, torque) / d(translation,
+        rotation) [N/m, N/rad; N m/m, N m/rad], symmetric positive semi-definite where the
+        probe presses. One tissue step of :attr:`dt` (inertia and damping included) is
+        linearised at the present state and contact set; see
+        :mod:`tissue.wrench_stiffness` for how and what it costs. None for PBD (no
+        tangent)."""
+        return wrench_stiffness(self._model)
+
+    # ------------------------------------------------------------------ snapshots
+
+    def state(self) -> TissueState:
+        """A snapshot to :meth:`set_state` from (a cache boundary: see the class docstring)."""
+        snapshot = self._model.snapshot()
+        return TissueState(self._fingerprint, self._model.time_s, copy.deepcopy(snapshot))
+
+    def set_state(self, state: TissueState) -> None:
+        """Continue from a :meth:`state` of a tissue built from the same spec."""
+        if not isinstance(state, TissueState):
+            raise TissueInputError(
+                f"set_state takes a TissueState from Tissue.state(); got {type(state).__name__}"
+            )
+        if state.fingerprint != self._fingerprint:
+            raise TissueInputError(
+                f"this state belongs to another tissue ({state.fingerprint}); this one is "
+                f"{self._fingerprint}: restore states into a tissue built from the same spec"
+            )
+        self._model.restore(copy.deepcopy(state.data))
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # Rebuilt from the resolved spec (no mesh generation, no PBD calibration again),
+        # then restored: factorisations are not pickled, they are rebuilt.
+        return (_rebuilt_tissue, (self._resolved, self.state()))
+
+    # ------------------------------------------------------------------ internals
+
+    @property
+    def contact_model(self) -> ContactModel:
+        """The contact strategy behind this tissue (for the study and benchmarks; not part
+        of the front door's stable surface)."""
+        return self._model
+
+    def _step_result(self, result: ContactResult) -> TissueStep:
+        status = result.status
+        force, torque = result.force_world, result.torque_world
+        if not (np.all(np.isfinite(force)) and np.all(np.isfinite(torque))):
+            # Never NaN out of the front door: a non-finite wrench is a divergence.
+            status = StepStatus.DIVERGED
+            force, torque = np.zeros(3), np.zeros(3)
+        diagnostics = result.diagnostics
+        return TissueStep(
+            status=status,
+            time_s=result.time_s,
+            force_world_n=force,
+            torque_world_nm=torque,
+            contact_points_world_m=result.contact_points,
+            contact_forces_world_n=result.contact_forces,
+            skin_penetration_m=result.skin_penetration_m,
+            landmarks_world_m=result.landmarks,
+            lesion_centroids_world_m=self.lesion_centroids_m(),
+            diagnostics=_typed_diagnostics(diagnostics, result),
+        )
+
+
+def pressing_direction(probe_quat_wxyz: ArrayLike) -> NDArray[np.float64]:
+    """The probe's +y axis in the world for an orientation (w, x, y, z), (3,): the direction
+    it presses."""
+    _check_quat(probe_quat_wxyz)
+    return quat_to_matrix(probe_quat_wxyz)[:, 1].copy()
+
+
+def _rebuilt_tissue(resolved: ResolvedTissue, state: TissueState) -> Tissue:
+    tissue = Tissue(resolved)
+    tissue.set_state(state)
+    return tissue
+
+
+def _check_quat(quat_wxyz: ArrayLike) -> None:
+    quat = np.asarray(quat_wxyz, dtype=np.float64).reshape(-1)
+    if quat.shape != (4,) or not np.all(np.isfinite(quat)) or float(quat @ quat) == 0.0:
+        raise TissueInputError(
+            f"probe quaternion must be 4 finite numbers (w, x, y, z), not all zero; got "
+            f"{quat_wxyz!r}"
+        )
+
+
+_ITERATION_KEYS = ("newton_iterations", "iterations", "substeps")
+_TYPED_KEYS = {
+    *_ITERATION_KEYS,
+    "linear_iterations",
+    "subdivisions",
+    "min_volume_ratio",
+    "sub_motions",
+}
+
+
+def _typed_diagnostics(diagnostics: Mapping[str, Any], result: ContactResult) -> StepDiagnostics:
+    iterations = next((diagnostics[key] for key in _ITERATION_KEYS if key in diagnostics), 1)
+    ratio = diagnostics.get("min_volume_ratio")
+    details = {
+        key: float(value)
+        for key, value in diagnostics.items()
+        if key not in _TYPED_KEYS
+        and isinstance(value, (bool, int, float, np.integer, np.floating))
+        and math.isfinite(float(value))
+    }
+    return StepDiagnostics(
+        iterations=int(iterations),
+        linear_iterations=int(diagnostics.get("linear_iterations", 0)),
+        contact_count=result.contact_count,
+        sub_motions=int(diagnostics.get("sub_motions", 1)),
+        subdivisions=int(diagnostics.get("subdivisions", 0)),
+        min_volume_ratio=None if ratio is None else float(ratio),
+        compute_ms=float(result.compute_ms),
+        details=details,
+    )

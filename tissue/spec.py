@@ -1,0 +1,357 @@
+"""What a tissue is made of: :class:`TissueSpec`, and the one place it is resolved.
+
+A :class:`TissueSpec` is a frozen, validated description (mesh, materials, contact method and
+its parameters, profile, time step, probe). :func:`resolve_spec` turns it, once, into every
+lower-level configuration a tissue is built from (:class:`ResolvedTissue`): the profile
+(``paper`` or ``robust``) is decided here and nowhere else behind the front door.
+
+The profiles:
+
+- ``paper``: as Tagliabue et al. 2020 -- one linearised backward-Euler solve per step, CG
+  capped at 25 iterations (``tissue.simulator.SimulationConfig(mode="paper")``); prescribed
+  displacement with the node set chosen at first contact (on the published scene, its own
+  set for the lesion); penalty with plain springs; the 10-substep XPBD baseline.
+- ``robust``: Newton to a tolerance with line search, PSD-projected tangents, step
+  subdivision and an inversion barrier; penalty augmented to 0.1 mm of penetration;
+  prescribed displacement with an online, sliding (frictionless) node set on the volume's
+  boundary and the skin between its nodes kept out of the probe
+  (:class:`tissue.contact.prescribed.PrescribedParams`, ``skin_guard``); the 60-substep XPBD
+  tissue with a volume floor.
+
+Either way a PBD tissue's compliance scales are calibrated for the mesh it runs on
+(:func:`tissue.pbd_calibration.calibrated_pbd_config`, cached on disk).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tissue.choices import Choice
+from tissue.contact.base import ContactMethod
+from tissue.contact.lagrange import LagrangeParams
+from tissue.contact.penalty import PenaltyParams
+from tissue.contact.prescribed import PrescribedParams
+from tissue.errors import ConfigError
+from tissue.material import NeoHookean, TissueMaterials
+from tissue.mesh import TetMesh
+from tissue.pbd import PBDConfig
+from tissue.probe import ProbeShape, parse_probe_spec
+from tissue.simulator import SimulationConfig
+
+#: ``TissueSpec(mesh=PUBLISHED_SCENE)`` loads the published scene from where the project
+#: looks for it (``PROBEGYM_PAPER_SCENE``, then ``shared/paper-scene`` beside the checkout).
+PUBLISHED_SCENE = "paper-scene"
+#: Where the published scene is looked for, in order: this variable, then beside the checkout.
+PAPER_SCENE_ENV_VAR = "PROBEGYM_PAPER_SCENE"
+
+
+class Profile(Choice):
+    """How faithfully to the paper, or how robustly, a tissue is simulated (module docstring)."""
+
+    PAPER = "paper"
+    ROBUST = "robust"
+
+    @classmethod
+    def noun(cls) -> str:
+        return "profile"
+
+
+#: Each contact method's parameter type (``TissueSpec.contact_params``).
+PARAMS_TYPES: dict[ContactMethod, type] = {
+    ContactMethod.PENALTY: PenaltyParams,
+    ContactMethod.LM: LagrangeParams,
+    ContactMethod.PRESCRIBED: PrescribedParams,
+    ContactMethod.PBD: PBDConfig,
+}
+
+
+@dataclass(frozen=True)
+class TissueSpec:
+    """A tissue to build with :func:`tissue.make_tissue`. Frozen; validated when made.
+
+    Attributes:
+        mesh: a phantom level (its tet count on the paper's ladder, e.g. ``1363``; int or
+            digits), a tet-mesh file meshio reads (with ``fixed_plane`` or
+            ``fixed_nodes_file``), ``"paper-scene"`` or a directory laid out as the
+            published scene (with ``scene_lesion`` for the paper profile's prescribed node
+            set), or a :class:`tissue.mesh.TetMesh`.
+        contact: ``penalty``, ``lm``, ``prescribed`` or ``pbd``.
+        profile: ``paper`` or ``robust`` (see the module docstring).
+        tissue_dt: the tissue time step [s], in (0, 1] (the paper's 0.02).
+        young_pa: the bulk tissue's Young's modulus [Pa] (default 2850).
+        poisson: the bulk tissue's Poisson ratio (default 0.49).
+        lesion_stiffness_ratio: E_lesion / E_tissue (default 4).
+        materials: a full :class:`tissue.material.TissueMaterials` instead of the three above.
+        contact_params: the method's parameters (:data:`PARAMS_TYPES`), replacing the
+            profile's; None: the profile's.
+        probe: the probe's shape: ``face`` (the linear probe, default), ``sphere:R``,
+            ``box:LX,LY,LZ``, ``cylinder:R,H``, a mesh file, or a
+            :class:`tissue.probe.ProbeShape`.
+        fixed_plane: (mesh file) fix the nodes on a plane, ``"z=min"``.
+        fixed_nodes_file: (mesh file) a file of fixed node indices.
+        mesh_scale: (mesh file) factor to metres (0.001 for a mesh in millimetres).
+        scene_lesion: (published scene) the tumour whose published node set the paper
+            profile's prescribed displacement holds.
+    """
+
+    mesh: int | str | os.PathLike[str] | TetMesh = 1363
+    contact: str = "lm"
+    profile: str = "robust"
+    tissue_dt: float = 0.02
+    young_pa: float | None = None
+    poisson: float | None = None
+    lesion_stiffness_ratio: float | None = None
+    materials: TissueMaterials | None = None
+    contact_params: Any = None
+    probe: str | ProbeShape = "face"
+    fixed_plane: str | None = None
+    fixed_nodes_file: str | os.PathLike[str] | None = None
+    mesh_scale: float = 1.0
+    scene_lesion: int | None = None
+
+    def __post_init__(self) -> None:
+        method = ContactMethod.parse(self.contact)
+        object.__setattr__(self, "contact", method.value)
+        object.__setattr__(self, "profile", Profile.parse(self.profile).value)
+        if isinstance(self.tissue_dt, bool) or not isinstance(self.tissue_dt, (int, float)):
+            raise ConfigError(f"tissue_dt must be a number of seconds; got {self.tissue_dt!r}")
+        if not 0.0 < float(self.tissue_dt) <= 1.0:
+            raise ConfigError(
+                f"tissue_dt must be a time step in seconds in (0, 1]; got {self.tissue_dt!r} "
+                "(the paper uses 0.02)"
+            )
+        object.__setattr__(self, "tissue_dt", float(self.tissue_dt))
+        overrides = (self.young_pa, self.poisson, self.lesion_stiffness_ratio)
+        if self.materials is not None:
+            if any(value is not None for value in overrides):
+                raise ConfigError(
+                    "give either materials or young_pa / poisson / lesion_stiffness_ratio, not "
+                    "both (the materials already say all three)"
+                )
+            if not isinstance(self.materials, TissueMaterials):
+                raise ConfigError(
+                    f"materials must be a tissue.material.TissueMaterials; got "
+                    f"{type(self.materials).__name__}"
+                )
+        else:
+            self.resolved_materials()  # validates the overrides now
+        expected = PARAMS_TYPES[method]
+        if self.contact_params is not None and not isinstance(self.contact_params, expected):
+            raise ConfigError(
+                f"contact {method.value!r} takes contact_params of type {expected.__name__}; "
+                f"got {type(self.contact_params).__name__}"
+            )
+        if isinstance(self.contact_params, PBDConfig) and (
+            self.contact_params.tissue_dt != self.tissue_dt
+        ):
+            raise ConfigError(
+                f"contact_params.tissue_dt ({self.contact_params.tissue_dt}) differs from "
+                f"tissue_dt ({self.tissue_dt}); give the step once, as tissue_dt"
+            )
+        if not isinstance(self.probe, (str, ProbeShape)):
+            raise ConfigError(
+                f"probe must be a probe spec string (e.g. 'face', 'sphere:0.01') or a "
+                f"ProbeShape; got {type(self.probe).__name__}"
+            )
+        if isinstance(self.probe, str):
+            parse_probe_spec(self.probe)  # validates now
+        if not (np.isfinite(self.mesh_scale) and self.mesh_scale > 0):
+            raise ConfigError(f"mesh_scale must be a positive factor; got {self.mesh_scale!r}")
+        kind = self.mesh_kind()
+        file_options = (
+            self.fixed_plane is not None
+            or self.fixed_nodes_file is not None
+            or self.mesh_scale != 1.0
+        )
+        if file_options and kind != "file":
+            raise ConfigError(
+                "fixed_plane, fixed_nodes_file and mesh_scale apply to a mesh file only; got "
+                f"mesh={self.mesh!r}"
+            )
+        if kind == "file" and self.fixed_plane is None and self.fixed_nodes_file is None:
+            raise ConfigError(
+                f"the mesh file {str(self.mesh)!r} needs its fixed nodes: give "
+                "fixed_plane='z=min' (or another plane) or fixed_nodes_file=PATH"
+            )
+        if self.scene_lesion is not None and kind != "scene":
+            raise ConfigError(
+                f"scene_lesion applies to the published scene only (mesh='{PUBLISHED_SCENE}' "
+                f"or its directory); got mesh={self.mesh!r}"
+            )
+
+    @classmethod
+    def from_overrides(cls, **overrides: Any) -> TissueSpec:
+        """Build from keyword arguments, rejecting unknown names with the valid ones listed."""
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(overrides) - names)
+        if unknown:
+            raise ConfigError(
+                f"unknown tissue setting(s) {unknown}; valid settings: {sorted(names)}"
+            )
+        return cls(**overrides)
+
+    def mesh_kind(self) -> str:
+        """``level``, ``file``, ``scene`` or ``mesh`` (a TetMesh given)."""
+        mesh = self.mesh
+        if isinstance(mesh, TetMesh):
+            return "mesh"
+        if isinstance(mesh, bool):
+            raise ConfigError(f"mesh must be a level, a file or a directory; got {mesh!r}")
+        if isinstance(mesh, (int, np.integer)) or (isinstance(mesh, str) and mesh.isdigit()):
+            from tissue.phantom import parse_level
+
+            parse_level(int(mesh))  # validates the level
+            return "level"
+        if isinstance(mesh, (str, os.PathLike)):
+            text = os.fspath(mesh)
+            if text == PUBLISHED_SCENE or Path(text).is_dir():
+                return "scene"
+            if Path(text).suffix:
+                if not Path(text).is_file():
+                    raise ConfigError(f"mesh file {text!r} does not exist")
+                return "file"
+        raise ConfigError(
+            f"mesh must be a phantom level (e.g. 1363), a tet-mesh file, '{PUBLISHED_SCENE}' or "
+            f"a directory in its layout, or a TetMesh; got {mesh!r}"
+        )
+
+    def resolved_materials(self) -> TissueMaterials:
+        """The materials: ``materials``, or the defaults with the overrides applied."""
+        if self.materials is not None:
+            return self.materials
+        base = TissueMaterials()
+        tissue = NeoHookean(
+            self.young_pa if self.young_pa is not None else base.tissue.young_pa,
+            self.poisson if self.poisson is not None else base.tissue.poisson,
+            base.tissue.density_kg_m3,
+        )
+        ratio = self.lesion_stiffness_ratio
+        return TissueMaterials(
+            tissue=tissue,
+            lesion_stiffness_ratio=base.lesion_stiffness_ratio if ratio is None else ratio,
+        )
+
+    def probe_shape(self) -> ProbeShape:
+        """The probe's geometry."""
+        return self.probe if isinstance(self.probe, ProbeShape) else parse_probe_spec(self.probe)
+
+
+@dataclass(frozen=True)
+class ResolvedTissue:
+    """Everything a tissue is built from, decided once from a :class:`TissueSpec`.
+
+    Attributes:
+        spec: the spec it came from.
+        method: the contact method.
+        mesh: the tet mesh.
+        materials: per-region materials.
+        probe_shape: the probe's geometry.
+        config: the FE simulation's configuration, or the PBD tissue's.
+        params: the FE strategy's parameters (None for PBD, whose ``config`` says all).
+    """
+
+    spec: TissueSpec
+    method: ContactMethod
+    mesh: TetMesh
+    materials: TissueMaterials
+    probe_shape: ProbeShape
+    config: SimulationConfig | PBDConfig
+    params: PenaltyParams | LagrangeParams | PrescribedParams | None
+
+
+def load_spec_mesh(spec: TissueSpec) -> TetMesh:
+    """The tet mesh ``spec.mesh`` names (phantom levels are generated once and cached)."""
+    kind = spec.mesh_kind()
+    if kind == "mesh":
+        assert isinstance(spec.mesh, TetMesh)
+        return spec.mesh
+    if kind == "level":
+        from tissue.phantom import breast_phantom
+
+        assert isinstance(spec.mesh, (int, str, np.integer))
+        return breast_phantom(int(spec.mesh))
+    if kind == "scene":
+        from tissue.paper_scene import load_paper_scene
+
+        return load_paper_scene(published_scene_dir(spec.mesh)).mesh
+    from tissue.mesh_io import load_tet_mesh
+
+    assert isinstance(spec.mesh, (str, os.PathLike))
+    fixed_file = spec.fixed_nodes_file
+    return load_tet_mesh(
+        Path(spec.mesh),
+        fixed_plane=spec.fixed_plane,
+        fixed_nodes_file=None if fixed_file is None else Path(fixed_file),
+        scale=spec.mesh_scale,
+    )
+
+
+def published_scene_dir(mesh: object) -> Path:
+    """The published scene's directory for ``mesh`` (``"paper-scene"`` or a directory)."""
+    text = os.fspath(mesh) if isinstance(mesh, (str, os.PathLike)) else ""
+    if text and text != PUBLISHED_SCENE:
+        return Path(text)
+    candidates = []
+    if os.environ.get(PAPER_SCENE_ENV_VAR):
+        candidates.append(Path(os.environ[PAPER_SCENE_ENV_VAR]))
+    repo = Path(__file__).resolve().parents[1]
+    candidates += [repo.parent / "shared" / "paper-scene", Path.cwd() / "shared" / "paper-scene"]
+    for candidate in candidates:
+        if candidate.is_dir():
+            return candidate
+    raise ConfigError(
+        f"mesh='{PUBLISHED_SCENE}' needs the published scene; none found at "
+        f"{', '.join(str(c) for c in candidates)}. Set {PAPER_SCENE_ENV_VAR} or give its directory"
+    )
+
+
+def resolve_spec(spec: TissueSpec, mesh: TetMesh | None = None) -> ResolvedTissue:
+    """Decide every lower-level configuration of ``spec`` (the profile, in one place).
+
+    Args:
+        spec: the tissue.
+        mesh: its mesh if already loaded (else :func:`load_spec_mesh`).
+    """
+    mesh = load_spec_mesh(spec) if mesh is None else mesh
+    method = ContactMethod.parse(spec.contact)
+    robust = Profile.parse(spec.profile) is Profile.ROBUST
+    materials = spec.resolved_materials()
+    shape = spec.probe_shape()
+    if method is ContactMethod.PBD:
+        config: SimulationConfig | PBDConfig
+        if spec.contact_params is not None:
+            config = spec.contact_params
+        else:
+            from tissue.pbd_calibration import calibrated_pbd_config
+
+            base = replace(PBDConfig.for_mode(spec.profile), tissue_dt=spec.tissue_dt)
+            config = calibrated_pbd_config(mesh, materials, base)
+        return ResolvedTissue(spec, method, mesh, materials, shape, config, None)
+    config = SimulationConfig(mode=spec.profile, tissue_dt=spec.tissue_dt)
+    params = spec.contact_params
+    if params is None and method is ContactMethod.PRESCRIBED:
+        if robust:
+            params = PrescribedParams(online=True, sliding=True, skin_guard=True)
+        elif spec.scene_lesion is not None:
+            params = PrescribedParams(node_set=published_node_set(spec, mesh))
+    if params is None:
+        params = PARAMS_TYPES[method]()
+    return ResolvedTissue(spec, method, mesh, materials, shape, config, params)
+
+
+def published_node_set(spec: TissueSpec, mesh: TetMesh) -> tuple[int, ...]:
+    """The published prescribed-node set of ``spec.scene_lesion``, as volume boundary nodes."""
+    from tissue.paper_scene import load_paper_scene, spring_nodes_to_volume
+
+    scene = load_paper_scene(published_scene_dir(spec.mesh))
+    if spec.scene_lesion not in scene.spring_nodes:
+        raise ConfigError(
+            f"scene_lesion {spec.scene_lesion} is not in the published scene; choose one of "
+            f"{sorted(scene.spring_nodes)}"
+        )
+    return spring_nodes_to_volume(mesh, scene.spring_nodes[spec.scene_lesion])
