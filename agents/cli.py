@@ -11,6 +11,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from tissue import configure_threads
 from tissue.errors import ConfigError, TissueInputError
 
 
@@ -190,6 +191,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = _build_parser()
     args = parser.parse_args(argv)
     try:
+        # The process's thread policy, explicitly (TBB, MKL sequential; see tissue.threads).
+        configure_threads()
         if args.command == "demo":
             from agents.tissue_demo import run_demo
 

@@ -17,17 +17,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from tissue.contact import ContactMethod, ContactModel, make_contact_model
+from tissue import TissueSpec, make_tissue
+from tissue.contact import ContactMethod, ContactModel
 from tissue.contact.base import ContactResult
 from tissue.contact.placement import first_contact_pose
 from tissue.contact.prescribed import PrescribedParams
 from tissue.contact.stability import StabilityMonitor
 from tissue.errors import ConfigError, TissueInputError
-from tissue.material import NeoHookean, TissueMaterials
 from tissue.mesh import TetMesh
 from tissue.pbd import PBDConfig
 from tissue.probe import Probe, ProbeShape
-from tissue.simulator import SimulationConfig
 from tissue.status import StepStatus, worst
 
 # The probe starts this far before first contact [m].
@@ -336,34 +335,46 @@ def build_model(
     mode: str,
     young_pa: float | None,
     poisson: float | None,
-    online: bool,
+    online: bool | None,
     node_set: tuple[int, ...] | None = None,
     sliding: bool = False,
+    pbd_config: PBDConfig | None = None,
 ) -> ContactModel:
-    """The contact model for a compression, with the material overrides applied."""
+    """The contact model for a compression, built through the front door
+    (:func:`tissue.make_tissue`): the profile's defaults, unless the arguments say otherwise.
+
+    ``online`` None takes the profile's node set for prescribed displacement (robust:
+    online, sliding, the skin guarded; paper: chosen at first contact); True / False an
+    online (sticking, or ``sliding``) or fixed set, without the guard, as the study runs it.
+    ``pbd_config``: PBD settings instead of the profile's per-mesh calibration.
+    """
     method_enum = ContactMethod.parse(method)
     if online and method_enum is not ContactMethod.PRESCRIBED:
         raise ConfigError(f"--online applies to --method prescribed only; got --method {method}")
+    if online is None and sliding:
+        online = mode == "robust"  # the profile's node set: online in robust mode only
     if sliding and not (online and method_enum is ContactMethod.PRESCRIBED):
         raise ConfigError(
             "--sliding applies to --method prescribed with an online node set (--online; the "
             f"default in robust mode); got --method {method}, online {online}"
         )
-    base = NeoHookean()
-    tissue = NeoHookean(
-        young_pa if young_pa is not None else base.young_pa,
-        poisson if poisson is not None else base.poisson,
-        base.density_kg_m3,
+    params: Any = None
+    if method_enum is ContactMethod.PRESCRIBED and (
+        online is not None or sliding or node_set is not None
+    ):
+        params = PrescribedParams(online=bool(online), sliding=sliding, node_set=node_set)
+    elif method_enum is ContactMethod.PBD and pbd_config is not None:
+        params = pbd_config
+    spec = TissueSpec(
+        mesh=mesh,
+        contact=method_enum.value,
+        profile=mode,
+        young_pa=young_pa,
+        poisson=poisson,
+        contact_params=params,
+        probe=shape,
     )
-    materials = TissueMaterials(tissue=tissue)
-    if method_enum is ContactMethod.PBD:
-        return make_contact_model(
-            method_enum, mesh, shape, materials=materials, config=PBDConfig.for_mode(mode)
-        )
-    kwargs: dict[str, Any] = {"materials": materials, "config": SimulationConfig(mode=mode)}
-    if method_enum is ContactMethod.PRESCRIBED:
-        kwargs["params"] = PrescribedParams(online=online, sliding=sliding, node_set=node_set)
-    return make_contact_model(method_enum, mesh, shape, **kwargs)
+    return make_tissue(spec).contact_model
 
 
 def plan_straight(

@@ -45,16 +45,6 @@ def _load_mesh(args: argparse.Namespace) -> TetMesh:
     return breast_phantom(parse_level(mesh_arg))
 
 
-def resolve_online(online: bool | None, method: str, mode: str) -> bool:
-    """Whether prescribed displacement updates its node set every step: as asked
-    (``--online`` / ``--no-online``), else as the mode's configuration has it (robust: online,
-    as in the study and the hard cases; paper: the set fixed beforehand). Other methods have
-    no node set: ``--online`` with them is an error (in :func:`agents.compress.build_model`)."""
-    if online is not None:
-        return online
-    return method == "prescribed" and mode == "robust"
-
-
 def run_compress_command(args: argparse.Namespace) -> int:
     """Validate the arguments, run the compression, write the JSON; returns the exit code."""
     settle = ACCURATE_SETTLE_STEPS if args.settle_steps is None else args.settle_steps
@@ -63,7 +53,9 @@ def run_compress_command(args: argparse.Namespace) -> int:
             f"--settle-steps must be a whole number of steps >= 1; got {settle} "
             f"(default {ACCURATE_SETTLE_STEPS}: a hold of up to 5 s at each depth)"
         )
-    online = resolve_online(args.online, args.method, args.mode)
+    # None: the profile's node set (tissue.spec: robust online, sliding, skin guarded; paper
+    # chosen at first contact, or on the published scene its own set).
+    online = args.online
     given_nodes = None
     if args.scene is not None:
         from tissue.paper_scene import load_paper_scene
@@ -75,7 +67,8 @@ def run_compress_command(args: argparse.Namespace) -> int:
                 f"{sorted(scene.probe_poses)}"
             )
         mesh = scene.mesh
-        if args.method == "prescribed" and not online:  # the paper's set for this lesion
+        paper_set = online is False or (online is None and args.mode == "paper")
+        if args.method == "prescribed" and paper_set:  # the paper's set for this lesion
             given_nodes = spring_nodes_to_volume(mesh, scene.spring_nodes[args.lesion])
     else:
         mesh = _load_mesh(args)
@@ -125,8 +118,8 @@ def run_compress_command(args: argparse.Namespace) -> int:
         "probe": shape.name,
         "speed_m_s": args.speed,
         "settle_steps": settle,
-        "online": online,
-        "sliding": args.sliding,
+        "online": getattr(getattr(model, "params", None), "online", None),
+        "sliding": getattr(getattr(model, "params", None), "sliding", None),
     }
     write_json(record, args.json)
     print(f"written: {args.json} ({len(record['steps'])} steps)")

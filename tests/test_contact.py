@@ -687,17 +687,18 @@ def test_compress_command_holds_at_most_settle_steps(tmp_path) -> None:
 
 
 @pytest.mark.parametrize(
-    ("arguments", "online"),
+    ("arguments", "online", "sliding"),
     [
-        ([], True),  # robust mode's configuration, as in the study and the hard cases
-        (["--mode", "paper"], False),  # the paper's set, fixed at first contact
-        (["--no-online"], False),
-        (["--mode", "paper", "--online"], True),
-        (["--sliding"], True),
+        ([], True, True),  # the robust profile's: online, sliding, the skin guarded
+        (["--mode", "paper"], False, False),  # the paper's set, fixed at first contact
+        (["--no-online"], False, False),
+        (["--mode", "paper", "--online"], True, False),
+        (["--online"], True, False),  # online and sticking, as the study's robust cells
+        (["--sliding"], True, True),
     ],
 )
 def test_compress_prescribed_node_set_follows_the_mode_unless_told(
-    tmp_path, arguments: list[str], online: bool
+    tmp_path, arguments: list[str], online: bool, sliding: bool
 ) -> None:
     import json
 
@@ -709,7 +710,7 @@ def test_compress_prescribed_node_set_follows_the_mode_unless_told(
     assert code == 0
     record = json.loads(out.read_text())
     assert record["config"]["online"] is online
-    assert record["config"]["sliding"] is ("--sliding" in arguments)
+    assert record["config"]["sliding"] is sliding
     assert record["levels"][0]["force_normal_n"] > 0.0
 
 

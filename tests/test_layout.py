@@ -27,3 +27,47 @@ def test_tissue_imports_no_robot_or_learning_stack() -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == ""
+
+
+def _imports(package: str) -> list[tuple[str, str, tuple[str, ...]]]:
+    """(file, module imported, names imported) for every import in ``package``'s sources."""
+    import ast
+
+    found = []
+    for path in sorted((ROOT / package).rglob("*.py")):
+        tree = ast.parse(path.read_text(), filename=str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                found += [(str(path), alias.name, ()) for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = tuple(alias.name for alias in node.names)
+                found.append((str(path), node.module, names))
+    return found
+
+
+def test_imports_go_one_way_and_envs_use_only_the_front_door() -> None:
+    """agents -> envs -> tissue: tissue imports neither, envs not agents; envs reaches tissue
+    only through ``import tissue`` / ``from tissue import <public name>``."""
+    import tissue
+
+    public = set(tissue.__all__)
+    for path, module, _ in _imports("tissue"):
+        assert module.split(".")[0] not in ("envs", "agents"), (path, module)
+    for path, module, names in _imports("envs"):
+        top = module.split(".")[0]
+        assert top != "agents", (path, module)
+        if top == "tissue":
+            assert module == "tissue", f"{path} imports {module}: use tissue's public names"
+            assert set(names) <= public, (path, sorted(set(names) - public))
+
+
+def test_the_import_check_sees_a_private_import(tmp_path, monkeypatch) -> None:
+    """The check above fails on an envs module reaching into tissue's internals."""
+    layout = sys.modules[__name__]
+    fake = tmp_path / "envs"
+    fake.mkdir()
+    (fake / "bad.py").write_text("from tissue.simulator import TissueSimulator\n")
+    monkeypatch.setattr(layout, "ROOT", tmp_path)
+    (tmp_path / "tissue").mkdir()
+    with pytest.raises(AssertionError, match="public names"):
+        layout.test_imports_go_one_way_and_envs_use_only_the_front_door()

@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from tissue.contact.base import ContactModel
 from tissue.errors import TissueInputError
 from tissue.material import TissueMaterials
 from tissue.mesh import TetMesh, boundary_faces
@@ -152,6 +153,32 @@ def fe_compression(
     )
 
 
+def lm_compression(
+    mesh: TetMesh,
+    materials: TissueMaterials | None = None,
+    depth_m: float = 0.01,
+    speed_m_s: float = 0.01,
+    hold_s: float = 0.5,
+    tissue_dt: float = 0.02,
+) -> CompressionResponse:
+    """The reference of a per-mesh calibration: the linear probe face pressed into the mesh
+    at the centre of its plan by robust Lagrange multipliers (exact frictionless contact on
+    the skin), starting where the face touches the skin, moving along -z at ``speed_m_s`` to
+    ``depth_m``, then holding ``hold_s``. The force is the wrench's z component."""
+    from tissue.contact import make_contact_model
+
+    face = LinearProbeFace()
+    model = make_contact_model(
+        "lm",
+        mesh,
+        face,
+        materials=materials,
+        config=SimulationConfig(mode="robust", tissue_dt=tissue_dt),
+    )
+    origin, quat, _ = _face_pose_and_footprint(mesh, face, model.skin.positions(mesh.nodes))
+    return _press(model, origin, quat, depth_m, speed_m_s, hold_s)
+
+
 def pbd_compression(
     mesh: TetMesh,
     materials: TissueMaterials | None = None,
@@ -159,16 +186,31 @@ def pbd_compression(
     depth_m: float = 0.01,
     speed_m_s: float = 0.01,
     hold_s: float = 0.5,
+    on_skin: bool = False,
 ) -> CompressionResponse:
     """The same compression as :func:`fe_compression` with :class:`PBDContact`.
 
     The :class:`~tissue.probe.LinearProbeFace` starts touching the highest contact-surface
-    point under its outline and moves along -z (the force is the wrench's z component).
+    point under its outline (``on_skin``: the highest skin point, as :func:`lm_compression`)
+    and moves along -z (the force is the wrench's z component).
     """
 
     face = LinearProbeFace()
     model = PBDContact(mesh, face, materials, config)
-    origin, quat, _ = _face_pose_and_footprint(mesh, face, model.contact_point_positions)
+    points = model.skin.positions(mesh.nodes) if on_skin else model.contact_point_positions
+    origin, quat, _ = _face_pose_and_footprint(mesh, face, points)
+    return _press(model, origin, quat, depth_m, speed_m_s, hold_s)
+
+
+def _press(
+    model: ContactModel,
+    origin: NDArray[np.float64],
+    quat: NDArray[np.float64],
+    depth_m: float,
+    speed_m_s: float,
+    hold_s: float,
+) -> CompressionResponse:
+    """Press ``model``'s probe from ``origin`` down -z to ``depth_m`` and hold."""
     rest = model.landmark_positions()
     worst = StepStatus.OK
     times = []
@@ -209,6 +251,7 @@ def calibrate_pbd(
     depth_m: float = 0.01,
     fit: bool = True,
     max_evaluations: int = 40,
+    reference: str = "prescribed",
 ) -> CalibrationResult:
     """Fit (or check) the PBD compliance scales against the FE on the built-in phantom.
 
@@ -226,6 +269,9 @@ def calibrate_pbd(
         depth_m: compression depth from first contact [m].
         fit: fit the scales (True) or only evaluate ``config`` (False).
         max_evaluations: Nelder-Mead's budget of PBD runs.
+        reference: ``prescribed`` (:func:`fe_compression`, the stored defaults' reference)
+            or ``lm`` (:func:`lm_compression`: exact contact on the skin, the per-mesh
+            calibrations' reference, pressed from the same pose).
 
     Returns:
         the scales and the measured responses and mismatches.
@@ -235,7 +281,13 @@ def calibrate_pbd(
 
     mesh = level if isinstance(level, TetMesh) else breast_phantom(level)
     base = config or PBDConfig()
-    fe = fe_compression(mesh, materials, depth_m=depth_m, tissue_dt=base.tissue_dt)
+    on_skin = reference == "lm"
+    if on_skin:
+        fe = lm_compression(mesh, materials, depth_m=depth_m, tissue_dt=base.tissue_dt)
+    elif reference == "prescribed":
+        fe = fe_compression(mesh, materials, depth_m=depth_m, tissue_dt=base.tissue_dt)
+    else:
+        raise TissueInputError(f"reference must be 'prescribed' or 'lm'; got {reference!r}")
     evaluations = 0
 
     def evaluate(log_scales: NDArray[np.float64]) -> tuple[CompressionResponse, float]:
@@ -246,7 +298,7 @@ def calibrate_pbd(
             deviatoric_compliance_scale=float(np.exp(log_scales[0])),
             volume_compliance_scale=float(np.exp(log_scales[1])),
         )
-        response = pbd_compression(mesh, materials, trial, depth_m=depth_m)
+        response = pbd_compression(mesh, materials, trial, depth_m=depth_m, on_skin=on_skin)
         force, lesions, _ = _mismatch(fe, response)
         penalty = 0.0 if response.status is StepStatus.OK else 1.0
         return response, abs(force) + lesions + penalty
@@ -283,20 +335,81 @@ def calibrate_pbd(
     )
 
 
+#: A per-mesh calibration stops once PBD's force is this close to LM's (relative) ...
+_FORCE_TOLERANCE = 0.02
+#: ... or after this many PBD presses.
+_FORCE_FIT_EVALUATIONS = 8
+
+
+def fit_force_scale(
+    mesh: TetMesh,
+    materials: TissueMaterials | None,
+    base: PBDConfig,
+    depth_m: float = 0.01,
+) -> CalibrationResult:
+    """Fit ``base``'s deviatoric compliance scale so that PBD's force on ``mesh`` matches
+    robust LM's (:func:`lm_compression`, the same press from the same pose), keeping its
+    volume scale: the force follows the deviatoric scale closely (F ~ scale^-p), so a few
+    secant steps on log F against log scale reach :data:`_FORCE_TOLERANCE` (each one PBD
+    press; the two-scale Nelder-Mead of :func:`calibrate_pbd` takes about 40).
+    """
+    lm = lm_compression(mesh, materials, depth_m=depth_m, tissue_dt=base.tissue_dt)
+    if not lm.force_n > 0.0:
+        raise TissueInputError(
+            f"the calibration press found no force on {mesh.name} (LM: {lm.force_n} N); pass "
+            "contact_params=PBDConfig(...) with scales of your own"
+        )
+
+    def press(log_scale: float) -> CompressionResponse:
+        trial = replace(base, deviatoric_compliance_scale=float(np.exp(log_scale)))
+        return pbd_compression(mesh, materials, trial, depth_m=depth_m, on_skin=True)
+
+    log_scale = math.log(base.deviatoric_compliance_scale)
+    response = press(log_scale)
+    evaluations = 1
+    previous: tuple[float, float] | None = None
+    while evaluations < _FORCE_FIT_EVALUATIONS:
+        if response.status is StepStatus.OK and response.force_n > 0.0:
+            error = math.log(response.force_n / lm.force_n)
+            if abs(error) <= math.log1p(_FORCE_TOLERANCE):
+                break
+            slope = -1.0  # F ~ 1 / scale to begin with
+            if previous is not None and previous[0] != log_scale:
+                slope = (error - previous[1]) / (log_scale - previous[0])
+                slope = min(-0.2, max(-3.0, slope))  # keep the secant sane
+            previous = (log_scale, error)
+            log_scale -= error / slope
+        else:  # a failed press: stiffen (smaller compliance) and try again
+            log_scale -= 0.5
+        response = press(log_scale)
+        evaluations += 1
+    force, lesions, top = _mismatch(lm, response)
+    return CalibrationResult(
+        deviatoric_compliance_scale=float(np.exp(log_scale)),
+        volume_compliance_scale=base.volume_compliance_scale,
+        fe=lm,
+        pbd=response,
+        force_mismatch=force,
+        lesion_mismatch=lesions,
+        top_lesion_mismatch=top,
+        evaluations=evaluations,
+    )
+
+
 #: Folder under the mesh cache where per-mesh calibrations are kept.
 _CACHE_FOLDER = "pbd-calibration"
 #: Bump when the calibration's procedure changes: cached scales are then computed again.
-_CALIBRATION_VERSION = 1
+_CALIBRATION_VERSION = 2
 
 
 def calibrated_pbd_config(
     mesh: TetMesh, materials: TissueMaterials | None, base: PBDConfig
 ) -> PBDConfig:
-    """``base`` with its compliance scales calibrated for ``mesh`` (:func:`calibrate_pbd`
-    from ``base``'s scales), cached on disk beside the generated meshes (keyed by the mesh,
-    the materials and every other setting of ``base``): XPBD's effective stiffness depends
-    on the resolution, so scales fitted on one mesh are off on another (at 1,303 tets the
-    4,126-tet scales left PBD 38 % softer than LM).
+    """``base`` with its deviatoric compliance scale calibrated for ``mesh``
+    (:func:`fit_force_scale`, from ``base``'s scales), cached on disk beside the generated
+    meshes (keyed by the mesh, the materials and every other setting of ``base``): XPBD's
+    effective stiffness depends on the resolution, so scales fitted on one mesh are off on
+    another (at 1,303 tets the 4,126-tet scales left PBD 38 % softer than LM).
 
     Raises:
         tissue.errors.TissueInputError: the calibration's press cannot be set up on this
@@ -328,7 +441,7 @@ def calibrated_pbd_config(
             )
         except (OSError, ValueError, KeyError):
             pass  # unreadable: calibrate again and rewrite it
-    result = calibrate_pbd(mesh, materials, base)
+    result = fit_force_scale(mesh, materials, base)
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_suffix(f".{os.getpid()}.tmp")
     partial.write_text(

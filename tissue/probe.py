@@ -51,8 +51,12 @@ FACE_WIDTH_M = 0.0132
 # the half-width (a least-squares scan of both radii against the STL picked these).
 FACE_EDGE_RADIUS_M = 0.00135
 FACE_CORNER_RADIUS_M = 0.0066
-# Depth of the probe's body behind the face used for contact [m] (see linear_probe).
-PROBE_BODY_DEPTH_M = 0.03
+# Depth of the probe's body behind the face used for contact [m] (see linear_probe): the
+# housing and the start of the handle. Deeper than any compression the study makes (30 mm),
+# so tissue pressed around the probe cannot reach its back: with a 30 mm body, a probe
+# teleported 30 mm into the 623-tet phantom (robust LM, the step split into sub-motions) let
+# the rebounding skin fold over the body's back, which then pulled the probe in.
+PROBE_BODY_DEPTH_M = 0.08
 
 # Any probe dimension above this [m] was almost certainly given in millimetres.
 _LARGEST_PLAUSIBLE_SIZE_M = 1.0
@@ -1021,13 +1025,16 @@ class Probe:
         return _as_points(points_probe) @ self._rotation.T + self.position_world
 
     def near(self, points_world: NDArray[np.float64], margin_m: float = 0.0) -> NDArray[np.bool_]:
-        """Which points [m] (n, 3) lie within the shape's bounding sphere about the probe
-        origin, widened by ``margin_m`` [m]: only those can be inside the probe or within
-        ``margin_m`` of it. Per-step checks evaluate the signed distance for those alone (a
-        few dozen of the ~500 skin points at the phantom's apex)."""
-        offsets = points_world - self.position_world
-        reach = self.shape.bounding_radius_m + margin_m
-        return np.einsum("ij,ij->i", offsets, offsets) <= reach * reach
+        """Which points [m] (n, 3) lie within the shape's local bounding box
+        (:meth:`ProbeShape.local_bounds_m`), widened by ``margin_m`` [m]: only those can be
+        inside the probe or within ``margin_m`` of it. Per-step checks evaluate the signed
+        distance for those alone (a few dozen of the ~500 skin points at the phantom's
+        apex). A box, not a ball about the origin: the probe's body reaches 80 mm behind
+        the face, and a ball holding it would hold most of the phantom."""
+        bounds = self.shape.local_bounds_m()
+        local = (points_world - self.position_world) @ self._rotation
+        inside = (local >= bounds[0] - margin_m) & (local <= bounds[1] + margin_m)
+        return inside.all(axis=1)
 
     def deepest_inside_m(self, points_world: NDArray[np.float64]) -> float:
         """How deep the deepest of ``points_world`` [m] (n, 3) lies inside the probe [m]

@@ -329,7 +329,9 @@ def resolve_spec(spec: TissueSpec, mesh: TetMesh | None = None) -> ResolvedTissu
         else:
             from tissue.pbd_calibration import calibrated_pbd_config
 
-            base = replace(PBDConfig.for_mode(spec.profile), tissue_dt=spec.tissue_dt)
+            base = replace(
+                PBDConfig.for_mode(spec.profile), tissue_dt=spec.tissue_dt, skin_contact=robust
+            )
             config = calibrated_pbd_config(mesh, materials, base)
         return ResolvedTissue(spec, method, mesh, materials, shape, config, None)
     config = SimulationConfig(mode=spec.profile, tissue_dt=spec.tissue_dt)

@@ -9,13 +9,16 @@ class StepStatus(str, Enum):
     """How a tissue step ended.
 
     ``OK`` and ``NOT_CONVERGED`` commit a finite state; ``INVERTED`` commits a finite state in
-    which some tet has det F <= 0; ``DIVERGED`` and ``SOLVER_FAILED`` keep the state from
+    which some tet has det F <= 0; ``TUNNELLED`` commits a finite state in which the probe
+    has passed through the skin (the skin lies behind the probe's mid-plane, see
+    :mod:`tissue.contact.tunnelling`); ``DIVERGED`` and ``SOLVER_FAILED`` keep the state from
     before the step (nothing non-finite is ever stored).
     """
 
     OK = "ok"
     NOT_CONVERGED = "not_converged"
     INVERTED = "inverted"
+    TUNNELLED = "tunnelled"
     DIVERGED = "diverged"
     SOLVER_FAILED = "solver_failed"
 
@@ -30,8 +33,9 @@ SEVERITY = {
     StepStatus.OK: 0,
     StepStatus.NOT_CONVERGED: 1,
     StepStatus.INVERTED: 2,
-    StepStatus.SOLVER_FAILED: 3,
-    StepStatus.DIVERGED: 4,
+    StepStatus.TUNNELLED: 3,
+    StepStatus.SOLVER_FAILED: 4,
+    StepStatus.DIVERGED: 5,
 }
 
 

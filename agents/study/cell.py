@@ -17,6 +17,7 @@ from agents.study.scenes import StudyScene, open_scene
 from agents.study.spec import Cell, StudyConfig, StudySpec
 from tissue.contact.base import ContactMethod
 from tissue.contact.stability import StabilityLimits, StabilityMonitor
+from tissue.pbd import PBDConfig
 from tissue.probe import parse_probe_spec
 
 #: The study's instability detector: every check of :mod:`tissue.contact.stability` but the
@@ -49,8 +50,18 @@ def run_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
     prescribed = cell.method is ContactMethod.PRESCRIBED
     online = prescribed and cell.config is StudyConfig.ROBUST
     node_set = scene.prescribed_nodes(mesh, cell.lesion) if prescribed and not online else None
+    # The study's own configurations, fixed (its published results were computed with them):
+    # robust prescribed online and sticking, PBD with the constants calibrated at 4,126 tets.
     model = build_model(
-        mesh, shape, cell.method.value, cell.config.value, None, None, online, node_set
+        mesh,
+        shape,
+        cell.method.value,
+        cell.config.value,
+        None,
+        None,
+        online if prescribed else None,
+        node_set,
+        pbd_config=PBDConfig.for_mode(cell.config.value),
     )
     start, stops = scene.path(mesh, shape, cell.lesion, spec.depths_m)
     monitor = StabilityMonitor(cell.method, mesh.nodes, start.position, STUDY_LIMITS)

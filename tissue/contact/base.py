@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tissue.choices import Choice
+from tissue.contact.tunnelling import face_samples, skin_behind_probe
 from tissue.embedding import BarycentricEmbedding
 from tissue.errors import TissueInputError
 from tissue.mesh import TetMesh, boundary_faces
@@ -160,6 +161,10 @@ class ContactModel(abc.ABC):
         #: dimension, so that no skin point can pass through the probe within one (a step
         #: whose probe moves farther is split, see :meth:`step`).
         self.max_sub_motion_m = 0.5 * float(np.min(bounds[1] - bounds[0]))
+        skin_rest = self.skin.positions(mesh.nodes)
+        corners = skin_rest[self.skin.triangles]
+        edges = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2)
+        self._tunnel_samples = face_samples(self.probe, float(edges.mean()))
 
     # ------------------------------------------------------------------ interface
 
@@ -286,6 +291,8 @@ class ContactModel(abc.ABC):
             # The state is the last completed sub-motion's; forces of a failed solve mean
             # nothing.
             points, forces = np.zeros((0, 3)), np.zeros((0, 3))
+        elif self.probe_behind_skin():
+            status = worst(status, StepStatus.TUNNELLED)
         force, torque = (
             self.probe.wrench_about_origin(points, forces)
             if points.shape[0]
@@ -321,6 +328,14 @@ class ContactModel(abc.ABC):
         angle = 2.0 * math.acos(cosine)
         travel = translation + angle * self.probe.shape.bounding_radius_m
         return min(MAX_SUB_MOTIONS, max(1, math.ceil(travel / self.max_sub_motion_m - 1e-12)))
+
+    def probe_behind_skin(self) -> bool:
+        """Whether the probe has passed through the skin: part of its face lies behind the
+        skin by more than half its thinnest dimension (:mod:`tissue.contact.tunnelling`)."""
+        skin = self.skin.positions(self.node_positions)
+        if not np.any(self.probe.near(skin, self.max_sub_motion_m)):
+            return False
+        return skin_behind_probe(self.probe, self._tunnel_samples, skin, self.skin.triangles)
 
     def contact_points_world(self) -> NDArray[np.float64]:
         """The tissue points this method keeps out of the probe [m], (point_count, 3).
