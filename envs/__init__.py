@@ -1,1 +1,36 @@
-"""Gymnasium environments: a MuJoCo robot holding a US probe, coupled to the tissue simulator."""
+"""Gymnasium environments: a MuJoCo arm holding a linear US probe, coupled two ways to the
+FE breast of :mod:`tissue`.
+
+Importing this package registers the environments::
+
+    import gymnasium as gym
+    import envs  # noqa: F401 - registers probegym/...
+
+    env = gym.make("probegym/BreastCompress-v0", contact="lm", mesh=1363)
+
+| id | task |
+| --- | --- |
+| ``probegym/BreastCompress-v0`` | compress the breast until a lesion reaches a depth in the image |
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+
+from envs.tasks.breast_compress import MAX_EPISODE_STEPS as _COMPRESS_STEPS
+
+ENV_IDS = ("probegym/BreastCompress-v0",)
+
+
+def _register() -> None:
+    if "probegym/BreastCompress-v0" not in gym.registry:
+        gym.register(
+            id="probegym/BreastCompress-v0",
+            entry_point="envs.tasks.breast_compress:BreastCompressEnv",
+            max_episode_steps=_COMPRESS_STEPS,
+        )
+
+
+_register()
+
+__all__ = ["ENV_IDS"]

@@ -31,6 +31,7 @@ from tissue.model import (
     make_tissue,
     pressing_direction,
 )
+from tissue.probe import ProbeShape
 from tissue.spec import PUBLISHED_SCENE, Profile, TissueSpec
 from tissue.status import StepStatus
 from tissue.surface_mesh import SurfaceMesh
@@ -44,6 +45,7 @@ __all__ = [
     "MaterialError",
     "MeshError",
     "NeoHookean",
+    "ProbeShape",
     "Profile",
     "StepDiagnostics",
     "StepStatus",

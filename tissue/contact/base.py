@@ -186,6 +186,7 @@ class ContactModel(abc.ABC):
         """Tissue back at rest, time 0, contact state cleared, no probe pose seen yet."""
         self._time = 0.0
         self._last_pose = None
+        self.drop_caches()
         self._reset_tissue()
 
     def place_probe(self, position_world: ArrayLike, quat_wxyz: ArrayLike) -> None:

@@ -1,0 +1,177 @@
+"""Two-way coupling of the MuJoCo arm and the FE tissue: :class:`TissueCoupling`.
+
+Step contract. :meth:`TissueCoupling.step` advances MuJoCo ``robot_substeps`` substeps of
+``robot_dt`` and then the tissue one ``tissue_dt`` (= ``robot_substeps * robot_dt``) with the
+probe's pose at the end; the tissue's new wrench and its stiffness act on the probe during the
+next call's substeps. Any MuJoCo stepping loop can host it (the environments do; the Studio
+simulation plugin can) by calling :meth:`step` with a control callback, or
+:meth:`before_substep` / :meth:`after_substeps` around its own ``mj_step``.
+
+The wrench on the probe between tissue steps is the tissue's wrench linearised in the probe's
+displacement from the pose the tissue last saw:
+
+    w(q) = w0 - K (q - q0),   K = Tissue.wrench_stiffness() (6 x 6),
+
+applied at the probe origin (moved to the probe body's centre of mass for ``xfrc_applied``,
+which the force-torque sensor sees; ``qfrc_applied`` would bypass it). Why it is stable: a
+zero-order hold of w0 would give the robot no stiffness to feel during a tissue step, and a
+stiff contact sampled every 20 ms chatters (the robot overshoots into the tissue, the next
+step pushes it out too far); with K the robot feels the tissue as the spring it is, at its
+own 2 ms rate, and only the tissue's slower dynamics (inertia, damping, the contact set) are
+sampled. K is the stiffness of one tissue step (inertia included, stiffer than the static
+tissue), so the hold errs on the stable side. The linearised force never pulls the probe into
+the tissue (contact only pushes): where it would, no wrench is applied. PBD has no tangent
+(K = 0: a zero-order hold).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+from numpy.typing import NDArray
+
+import tissue
+from envs.controller import rotation_vector
+from envs.errors import EnvConfigError
+from envs.scene import SceneNames
+
+
+@dataclass(frozen=True)
+class ProbeWrench:
+    """A wrench on the probe: force [N] and torque [N m] about the probe origin."""
+
+    force: NDArray[np.float64]
+    torque: NDArray[np.float64]
+
+
+class TissueCoupling:
+    """Steps an arm holding the probe and the tissue together (see the module docstring).
+
+    Args:
+        model: the compiled scene (the probe's body and site named as in :mod:`envs.scene`).
+        data: its data.
+        names: its ids.
+        tissue_model: the tissue (its ``dt`` must be a whole number of ``robot_dt``).
+        reaction: apply the tissue's wrench to the probe (False: one-way coupling, the
+            tissue follows the probe and the robot never feels it; for tests and as the
+            cheapest scene).
+        linearised: apply w0 - K (q - q0) (True) or hold w0 (False).
+    """
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        data: mujoco.MjData,
+        names: SceneNames,
+        tissue_model: tissue.Tissue,
+        reaction: bool = True,
+        linearised: bool = True,
+    ) -> None:
+        ratio = tissue_model.dt / model.opt.timestep
+        self.substeps = int(round(ratio))
+        if self.substeps < 1 or abs(ratio - self.substeps) > 1e-9:
+            raise EnvConfigError(
+                f"tissue_dt {tissue_model.dt} s must be a whole number of robot_dt "
+                f"{model.opt.timestep} s; choose robot_dt = tissue_dt / k"
+            )
+        self.model = model
+        self.data = data
+        self.names = names
+        self.tissue = tissue_model
+        self.reaction = reaction
+        self.linearised = linearised and tissue_model.contact is not tissue.ContactMethod.PBD
+        self._w0 = np.zeros(6)
+        self._stiffness = np.zeros((6, 6))
+        self._q0_pos = np.zeros(3)
+        self._q0_rot = np.eye(3)
+        self.last_step: tissue.TissueStep | None = None
+
+    # ------------------------------------------------------------------ probe pose
+
+    def probe_pose(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The probe site's pose now: position [m] (3,), rotation matrix (3, 3), world."""
+        site = self.names.probe_site
+        return (
+            self.data.site_xpos[site].copy(),
+            self.data.site_xmat[site].reshape(3, 3).copy(),
+        )
+
+    def reset(self) -> None:
+        """The tissue back at rest with the probe placed where the arm holds it now
+        (positions computed); nothing applied to the probe."""
+        position, rotation = self.probe_pose()
+        self.tissue.reset(position, _quat(rotation))
+        self._w0[:] = 0.0
+        self._stiffness[:] = 0.0
+        self._q0_pos, self._q0_rot = position, rotation
+        self.data.xfrc_applied[self.names.probe_body] = 0.0
+        self.last_step = None
+
+    # ------------------------------------------------------------------ stepping
+
+    def step(self, control: Callable[[mujoco.MjData], NDArray[np.float64]]) -> tissue.TissueStep:
+        """``substeps`` MuJoCo substeps (``control(data)`` gives the arm's motor commands
+        before each, positions and velocities computed), then one tissue step."""
+        model, data = self.model, self.data
+        for _ in range(self.substeps):
+            mujoco.mj_step1(model, data)
+            self.before_substep()
+            data.ctrl[self.names.actuators] = control(data)
+            mujoco.mj_step2(model, data)
+        mujoco.mj_kinematics(model, data)  # the probe's pose after the last substep
+        return self.after_substeps()
+
+    def before_substep(self) -> None:
+        """Apply the tissue's (linearised) wrench for the substep about to be taken
+        (positions computed)."""
+        body = self.names.probe_body
+        if not self.reaction:
+            self.data.xfrc_applied[body] = 0.0
+            return
+        wrench = self.wrench_now()
+        origin = self.data.site_xpos[self.names.probe_site]
+        centre = self.data.xipos[body]
+        # xfrc_applied acts at the body's centre of mass: move the torque there.
+        torque = wrench.torque + np.cross(origin - centre, wrench.force)
+        self.data.xfrc_applied[body, :3] = wrench.force
+        self.data.xfrc_applied[body, 3:] = torque
+
+    def wrench_now(self) -> ProbeWrench:
+        """The tissue's wrench on the probe at its present pose (linearised), world frame,
+        about the probe origin."""
+        w = self._w0
+        if self.linearised:
+            position, rotation = self.probe_pose()
+            displacement = np.concatenate(
+                [position - self._q0_pos, rotation_vector(rotation @ self._q0_rot.T)]
+            )
+            w = w - self._stiffness @ displacement
+            pressing = rotation[:, 1]
+            if float(w[:3] @ pressing) > 0.0:
+                w = np.zeros(6)  # contact only pushes the probe back
+        return ProbeWrench(w[:3].copy(), w[3:].copy())
+
+    def after_substeps(self) -> tissue.TissueStep:
+        """The tissue's step with the probe where the substeps left it (positions computed);
+        its wrench and stiffness then act until the next."""
+        position, rotation = self.probe_pose()
+        step = self.tissue.step(position, _quat(rotation))
+        self._q0_pos, self._q0_rot = position, rotation
+        if step.status in (tissue.StepStatus.DIVERGED, tissue.StepStatus.SOLVER_FAILED):
+            self._w0[:] = 0.0
+            self._stiffness[:] = 0.0
+        else:
+            self._w0 = np.concatenate([step.force_world_n, step.torque_world_nm])
+            stiffness = self.tissue.wrench_stiffness() if self.linearised else None
+            self._stiffness = np.zeros((6, 6)) if stiffness is None else stiffness
+        self.last_step = step
+        return step
+
+
+def _quat(rotation: NDArray[np.float64]) -> NDArray[np.float64]:
+    quat = np.empty(4)
+    mujoco.mju_mat2Quat(quat, np.ascontiguousarray(rotation).reshape(-1))
+    return quat

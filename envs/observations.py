@@ -1,0 +1,125 @@
+"""What the probe's owner can measure: the lesion in the image plane and the F/T wrench.
+
+Image plane of a linear probe (probe frame, ``tissue`` module docstring): lateral = x,
+depth = y (into the tissue), out-of-plane = z (elevation). A lesion is *visible* when the
+probe touches the skin (the tissue pushes on it), the lesion lies inside the aperture
+(|lateral| <= aperture / 2) and the imaging depth (0 < depth <= imaging depth), and its
+distance from the plane is under half the slice thickness plus its radius. Out of view, the
+observation is zeros and the flag 0: the policy is told only what a sonographer would see.
+Defaults are the paper's Telemed L12-5N40 linear probe: about 40 mm aperture, 50 mm depth,
+2 mm slice thickness.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+from numpy.typing import NDArray
+
+from envs.errors import EnvConfigError
+from envs.scene import SceneNames
+
+#: The simulated effects a term may need (issue: "simulate only the effects a scene calls
+#: for"): the breast deforming, its force on the robot, lesions tracked in the image plane,
+#: the ultrasound image.
+EFFECTS = ("deformation", "force_feedback", "lesion_tracking", "image")
+
+#: A contact force below this [N] does not count as touching the skin.
+TOUCH_FORCE_N = 1e-3
+
+
+@dataclass(frozen=True)
+class ImagingConfig:
+    """The linear probe's imaging geometry [m].
+
+    Attributes:
+        aperture_m: width of the image (the array's length used), centred on the probe.
+        imaging_depth_m: deepest point imaged, from the face.
+        slice_thickness_m: thickness of the imaged slice (elevation).
+    """
+
+    aperture_m: float = 0.040
+    imaging_depth_m: float = 0.050
+    slice_thickness_m: float = 0.002
+
+    def __post_init__(self) -> None:
+        for name in ("aperture_m", "imaging_depth_m", "slice_thickness_m"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+                raise EnvConfigError(f"{name} must be a positive length in metres; got {value!r}")
+
+
+@dataclass(frozen=True)
+class LesionInImage:
+    """A lesion in the probe's image plane.
+
+    Attributes:
+        lateral_m, depth_m, out_of_plane_m: its centroid in the probe frame [m] (zeros when
+            not visible).
+        visible: whether a sonographer would see it (module docstring).
+        true_lateral_m, true_depth_m, true_out_of_plane_m: the same whether visible or not
+            (for rewards and checks, not for the policy).
+    """
+
+    lateral_m: float
+    depth_m: float
+    out_of_plane_m: float
+    visible: bool
+    true_lateral_m: float
+    true_depth_m: float
+    true_out_of_plane_m: float
+
+    def as_array(self) -> NDArray[np.float32]:
+        return np.array(
+            [self.lateral_m, self.depth_m, self.out_of_plane_m, float(self.visible)],
+            dtype=np.float32,
+        )
+
+
+def lesion_in_image(
+    centroid_world_m: NDArray[np.float64],
+    radius_m: float,
+    probe_pos_world: NDArray[np.float64],
+    probe_rot_world: NDArray[np.float64],
+    contact_force_n: float,
+    imaging: ImagingConfig,
+) -> LesionInImage:
+    """Where a lesion lies in the image plane, and whether it is visible (module docstring)."""
+    local = probe_rot_world.T @ (centroid_world_m - probe_pos_world)
+    lateral, depth, out_of_plane = (float(v) for v in local)
+    visible = (
+        contact_force_n > TOUCH_FORCE_N
+        and abs(lateral) <= 0.5 * imaging.aperture_m
+        and 0.0 < depth <= imaging.imaging_depth_m
+        and abs(out_of_plane) <= 0.5 * imaging.slice_thickness_m + radius_m
+    )
+    shown = (lateral, depth, out_of_plane) if visible else (0.0, 0.0, 0.0)
+    return LesionInImage(*shown, visible, lateral, depth, out_of_plane)
+
+
+def sensed_wrench(
+    model: mujoco.MjModel, data: mujoco.MjData, names: SceneNames
+) -> NDArray[np.float64]:
+    """The F/T sensor's wrench on the probe from the outside, (6,): force [N] then torque
+    [N m] about the probe origin, in the probe frame.
+
+    The sensor (at the flange end of the probe) reads minus the wrench of everything acting
+    on the probe below it: at rest -(m g + F_ext), in its frame. So: negate, tare the probe's
+    own weight (its mass at its centre of mass), move the torque to the probe origin and turn
+    both into the probe frame. Moving, the reading includes the probe's inertia too.
+    """
+    site = names.ft_site
+    site_rot = data.site_xmat[site].reshape(3, 3)
+    force_site = data.sensordata[names.force_sensor_adr : names.force_sensor_adr + 3]
+    torque_site = data.sensordata[names.torque_sensor_adr : names.torque_sensor_adr + 3]
+    body = names.probe_body
+    weight = model.body_mass[body] * model.opt.gravity
+    site_pos = data.site_xpos[site]
+    force = -site_rot @ force_site - weight
+    torque_about_site = -site_rot @ torque_site - np.cross(data.xipos[body] - site_pos, weight)
+    origin = data.site_xpos[names.probe_site]
+    torque = torque_about_site + np.cross(site_pos - origin, force)
+    probe_rot = data.site_xmat[names.probe_site].reshape(3, 3)
+    return np.concatenate([probe_rot.T @ force, probe_rot.T @ torque])

@@ -1,0 +1,410 @@
+"""The machinery every probegym task shares: :class:`ProbeEnv`.
+
+An arm (:mod:`envs.scene`) holds the linear probe, driven by a controller
+(:mod:`envs.controller`) and coupled two ways to the FE breast (:mod:`envs.coupling`). A task
+(:mod:`envs.tasks`) subclasses :class:`ProbeEnv` and says where an episode starts, what is
+observed beyond the common terms, what is rewarded and when it ends. Each observation and
+reward term declares the simulated effects it needs (:data:`envs.observations.EFFECTS`).
+
+Keyword arguments common to every task (unknown ones are errors that list the valid ones):
+``contact`` (penalty | lm | prescribed | pbd), ``profile`` (paper | robust), ``mesh`` (a
+phantom level or a mesh file, see ``tissue.TissueSpec``), ``young_pa``, ``poisson``,
+``lesion_stiffness_ratio``, ``control_mode`` (cartesian_impedance | joint_delta),
+``stiffness_n_per_m`` (the probe impedance's translational stiffness), ``render_mode``
+(rgb_array | human), ``camera_name`` (overview | probe_side), ``width``, ``height``,
+``robot`` (an MJCF arm) and ``flange_site``, ``robot_dt``, ``reaction`` (False: one-way
+coupling), ``max_translation_m`` and ``max_rotation_rad`` (the action's scale), and the
+imaging geometry ``aperture_m``, ``imaging_depth_m``, ``slice_thickness_m``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, fields
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+from gymnasium import spaces
+from numpy.typing import NDArray
+
+import tissue
+from envs.controller import (
+    CartesianImpedance,
+    ControllerConfig,
+    JointImpedance,
+    rotation_vector,
+    solve_ik,
+)
+from envs.coupling import TissueCoupling
+from envs.errors import EnvConfigError
+from envs.observations import ImagingConfig, sensed_wrench
+from envs.rendering import SceneRenderer
+from envs.scene import SceneConfig, build_scene, scene_names
+
+#: A seed configuration of the default arm for the probe over the phantom, pointing down;
+#: each reset solves IK from it.
+HOME_SEED_RAD = (-0.32, -1.5, 2.32, -2.39, 1.57, 1.25)
+#: Where the probe hovers at home [m] (above the phantom's apex, pointing down).
+HOME_PROBE_M = (0.0, 0.0, 0.14)
+#: Limits of a wrench observation [N, N m] and a joint velocity [rad/s] (the spaces' bounds).
+WRENCH_LIMIT = 200.0
+JOINT_VELOCITY_LIMIT = 20.0
+
+
+@dataclass(frozen=True)
+class ActionConfig:
+    """How an action in [-1, 1]^6 moves the probe's target each step.
+
+    Attributes:
+        max_translation_m: translation at |a| = 1 [m per step], along the probe's axes.
+        max_rotation_rad: rotation at |a| = 1 [rad per step], about the probe's axes.
+        max_joint_step_rad: ``joint_delta`` mode: joint target change at |a| = 1 [rad].
+    """
+
+    max_translation_m: float = 0.005
+    max_rotation_rad: float = 0.05
+    max_joint_step_rad: float = 0.05
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+                raise EnvConfigError(f"{f.name} must be a positive number; got {value!r}")
+
+
+def _split_kwargs(
+    kwargs: dict[str, Any], configs: dict[str, type]
+) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
+    """Route keyword arguments to the config they belong to; what is left over."""
+    routed: dict[str, dict[str, Any]] = {name: {} for name in configs}
+    rest = dict(kwargs)
+    for name, config_type in configs.items():
+        for f in fields(config_type):
+            if f.name in rest:
+                routed[name][f.name] = rest.pop(f.name)
+    return routed, rest
+
+
+class ProbeEnv(gym.Env[dict[str, NDArray[np.float32]], NDArray[np.float32]]):
+    """The coupled arm, probe and breast; tasks subclass it (see the module docstring)."""
+
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 50}  # noqa: RUF012
+
+    #: The task's own settings (a frozen dataclass); keyword arguments of its fields go there.
+    task_config_type: ClassVar[type] = type(None)
+
+    def __init__(
+        self,
+        contact: str = "lm",
+        profile: str = "robust",
+        mesh: int | str = 1363,
+        young_pa: float | None = None,
+        poisson: float | None = None,
+        lesion_stiffness_ratio: float | None = None,
+        control_mode: str = "cartesian_impedance",
+        render_mode: str | None = None,
+        camera_name: str = "overview",
+        width: int = 480,
+        height: int = 480,
+        robot: str | None = None,
+        flange_site: str | None = None,
+        robot_dt: float = 0.002,
+        reaction: bool = True,
+        **kwargs: Any,
+    ) -> None:
+        configs = {
+            "controller": ControllerConfig,
+            "action": ActionConfig,
+            "imaging": ImagingConfig,
+            "task": self.task_config_type,
+        }
+        routed, unknown = _split_kwargs(kwargs, configs)
+        if unknown:
+            valid = sorted(
+                {
+                    "contact",
+                    "profile",
+                    "mesh",
+                    "young_pa",
+                    "poisson",
+                    "lesion_stiffness_ratio",
+                    "control_mode",
+                    "render_mode",
+                    "camera_name",
+                    "width",
+                    "height",
+                    "robot",
+                    "flange_site",
+                    "robot_dt",
+                    "reaction",
+                }  # fmt: skip
+                | {f.name for config in configs.values() for f in fields(config)}
+            )
+            raise EnvConfigError(
+                f"unknown keyword argument(s) {sorted(unknown)} for {type(self).__name__}; "
+                f"valid ones: {', '.join(valid)}"
+            )
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise EnvConfigError(
+                f"unknown render_mode {render_mode!r}; choose one of "
+                f"{', '.join(self.metadata['render_modes'])} or None"
+            )
+        for name, value in (("width", width), ("height", height)):
+            if isinstance(value, bool) or not isinstance(value, int) or not 16 <= value <= 4096:
+                raise EnvConfigError(
+                    f"{name} must be a whole number of pixels in [16, 4096]; got {value!r}"
+                )
+        self.controller_config = ControllerConfig(mode=control_mode, **routed["controller"])
+        self.action_config = ActionConfig(**routed["action"])
+        self.imaging = ImagingConfig(**routed["imaging"])
+        self.task_config = self.task_config_type(**routed["task"])
+        scene_kwargs: dict[str, Any] = {"robot_dt": float(robot_dt)}
+        if robot is not None:
+            scene_kwargs["robot_path"] = robot
+        if flange_site is not None:
+            scene_kwargs["flange_site"] = flange_site
+        self.scene_config = SceneConfig(**scene_kwargs)
+        self.tissue = tissue.make_tissue(
+            mesh=mesh,
+            contact=contact,
+            profile=profile,
+            young_pa=young_pa,
+            poisson=poisson,
+            lesion_stiffness_ratio=lesion_stiffness_ratio,
+        )
+        self.model = build_scene(self.scene_config, self.tissue.probe_shape)
+        self.data = mujoco.MjData(self.model)
+        self.names = scene_names(self.model)
+        self.coupling = TissueCoupling(
+            self.model, self.data, self.names, self.tissue, reaction=bool(reaction)
+        )
+        self.joint_count = len(self.names.joint_qpos)
+        if self.controller_config.mode == "cartesian_impedance":
+            self.controller: CartesianImpedance | JointImpedance = CartesianImpedance(
+                self.model, self.names, self.controller_config
+            )
+        else:
+            self.controller = JointImpedance(self.model, self.names, self.controller_config)
+        self._home = self._solve_home()
+        self.render_mode = render_mode
+        self.camera_name = camera_name
+        self._renderer: SceneRenderer | None = None
+        self._frame_size = (width, height)
+        if camera_name not in ("overview", "probe_side"):
+            raise EnvConfigError(
+                f"unknown camera_name {camera_name!r}; choose one of overview, probe_side"
+            )
+        self.action_space = spaces.Box(-1.0, 1.0, shape=(6,), dtype=np.float32)
+        self.observation_space = spaces.Dict(self._observation_spaces())  # type: ignore[assignment]
+        self._start_pos = np.zeros(3)
+        self._start_rot = np.eye(3)
+        self._last_action = np.zeros(6)
+        #: Wall time of the last step's parts [s] (not in ``info``: not deterministic).
+        self.last_timing: dict[str, float] = {}
+
+    # ------------------------------------------------------------------ spaces
+
+    def _observation_spaces(self) -> dict[str, spaces.Space]:
+        """The common observation terms; tasks add theirs."""
+        n = self.joint_count
+        return {
+            "probe_pose": spaces.Box(
+                np.array([-2.0] * 3 + [-1.0] * 4, dtype=np.float32),
+                np.array([2.0] * 3 + [1.0] * 4, dtype=np.float32),
+                dtype=np.float32,
+            ),
+            "wrench": spaces.Box(-WRENCH_LIMIT, WRENCH_LIMIT, shape=(6,), dtype=np.float32),
+            "joint_pos": spaces.Box(
+                self.names.joint_ranges[:, 0].astype(np.float32),
+                self.names.joint_ranges[:, 1].astype(np.float32),
+                dtype=np.float32,
+            ),
+            "joint_vel": spaces.Box(
+                -JOINT_VELOCITY_LIMIT, JOINT_VELOCITY_LIMIT, shape=(n,), dtype=np.float32
+            ),
+        }
+
+    # ------------------------------------------------------------------ the arm
+
+    def _solve_home(self) -> NDArray[np.float64]:
+        """Joint angles with the probe hovering over the phantom, pointing down."""
+        seed = np.zeros(self.joint_count)
+        seed[: min(6, self.joint_count)] = HOME_SEED_RAD[: self.joint_count]
+        rotation = _pointing_down()
+        q, error = solve_ik(
+            self.model, self.data, self.names, np.array(HOME_PROBE_M), rotation, seed
+        )
+        if error > 1e-5:
+            raise EnvConfigError(
+                f"the arm cannot hold the probe over the phantom (IK error {error:.3g}); move "
+                f"it with robot_base_m or give another robot"
+            )
+        return q
+
+    def place_probe(self, position: NDArray[np.float64], rotation: NDArray[np.float64]) -> None:
+        """Put the arm, at rest, where its probe site has the pose (IK from home); the
+        controller then holds that pose and the tissue starts at rest with the probe there."""
+        mujoco.mj_resetData(self.model, self.data)
+        q, error = solve_ik(self.model, self.data, self.names, position, rotation, self._home)
+        if error > 1e-6:
+            raise EnvConfigError(f"the start pose is out of the arm's reach (IK error {error:.3g})")
+        self.data.qpos[self.names.joint_qpos] = q
+        self.data.qvel[:] = 0.0
+        mujoco.mj_forward(self.model, self.data)
+        if isinstance(self.controller, CartesianImpedance):
+            site_rot = self.data.site_xmat[self.names.probe_site].reshape(3, 3)
+            self.controller.set_target(self.data.site_xpos[self.names.probe_site], site_rot)
+            self.controller.posture = q.copy()
+        else:
+            self.controller.target_q = q.copy()
+        self.controller.update_inertia(self.data)
+        # Held still: the controller's torques (gravity compensation) in place, so that the
+        # first observation's sensor reads the arm at rest.
+        self.data.ctrl[self.names.actuators] = self.controller.torques(self.data)
+        mujoco.mj_forward(self.model, self.data)
+        self.coupling.reset()
+        self._start_pos = self.data.site_xpos[self.names.probe_site].copy()
+        self._start_rot = self.data.site_xmat[self.names.probe_site].reshape(3, 3).copy()
+        self._last_action = np.zeros(6)
+
+    def _apply_action(self, action: NDArray[np.float64]) -> None:
+        """Move the controller's target by the action (see :class:`ActionConfig`)."""
+        if isinstance(self.controller, CartesianImpedance):
+            scale = self.action_config
+            rotation = self.controller.target_rot
+            position = self.controller.target_pos + rotation @ (
+                action[:3] * scale.max_translation_m
+            )
+            turn = np.empty(4)
+            mujoco.mju_axisAngle2Quat(turn, *_axis_angle(action[3:] * scale.max_rotation_rad))
+            local = np.empty(9)
+            mujoco.mju_quat2Mat(local, turn)
+            rotation = rotation @ local.reshape(3, 3)
+            position, rotation = self._clip_target(position, rotation)
+            self.controller.set_target(position, rotation)
+        else:
+            step = action[: self.joint_count] * self.action_config.max_joint_step_rad
+            ranges = self.names.joint_ranges
+            self.controller.target_q = np.clip(
+                self.controller.target_q + step, ranges[:, 0], ranges[:, 1]
+            )
+
+    def _clip_target(
+        self, position: NDArray[np.float64], rotation: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The task's workspace around the start pose (the base class: none)."""
+        return position, rotation
+
+    # ------------------------------------------------------------------ stepping
+
+    def _check_action(self, action: Any) -> NDArray[np.float64]:
+        values = np.asarray(action, dtype=np.float64).reshape(-1)
+        if values.shape != (6,):
+            raise EnvConfigError(f"an action is 6 numbers in [-1, 1]; got shape {np.shape(action)}")
+        if not np.all(np.isfinite(values)):
+            raise EnvConfigError(
+                f"an action must be finite; got {values.tolist()} (NaN or inf: check the policy)"
+            )
+        return np.clip(values, -1.0, 1.0)  # documented: actions beyond the box are clipped
+
+    def _advance(self, action: NDArray[np.float64]) -> tissue.TissueStep:
+        """Move the target, step the arm and the tissue (timings into :attr:`last_timing`)."""
+        started = time.perf_counter()
+        self._apply_action(action)
+        self.controller.update_inertia(self.data)
+        controller_s = 0.0
+
+        def control(data: mujoco.MjData) -> NDArray[np.float64]:
+            nonlocal controller_s
+            tic = time.perf_counter()
+            torques = self.controller.torques(data)
+            controller_s += time.perf_counter() - tic
+            return torques
+
+        coupled = time.perf_counter()
+        step = self.coupling.step(control)
+        done = time.perf_counter()
+        self.last_timing = {
+            "controller_s": controller_s + (coupled - started),
+            "robot_s": 0.0,  # filled below
+            "tissue_s": step.diagnostics.compute_ms * 1e-3,
+        }
+        self.last_timing["robot_s"] = max(
+            0.0, (done - coupled) - self.last_timing["tissue_s"] - controller_s
+        )
+        return step
+
+    # ------------------------------------------------------------------ observations
+
+    def _common_observation(self) -> dict[str, NDArray[np.float32]]:
+        site = self.names.probe_site
+        quat = np.empty(4)
+        mujoco.mju_mat2Quat(quat, self.data.site_xmat[site])
+        if quat[0] < 0.0:
+            quat = -quat  # one of the two: w >= 0
+        pose = np.concatenate([self.data.site_xpos[site], quat])
+        return {
+            "probe_pose": pose.astype(np.float32),
+            "wrench": np.clip(self.sensed_wrench(), -WRENCH_LIMIT, WRENCH_LIMIT).astype(np.float32),
+            "joint_pos": self.data.qpos[self.names.joint_qpos].astype(np.float32),
+            "joint_vel": np.clip(
+                self.data.qvel[self.names.joint_dof], -JOINT_VELOCITY_LIMIT, JOINT_VELOCITY_LIMIT
+            ).astype(np.float32),
+        }
+
+    def sensed_wrench(self) -> NDArray[np.float64]:
+        """The F/T sensor's wrench in the probe frame (see
+        :func:`envs.observations.sensed_wrench`), (6,)."""
+        return sensed_wrench(self.model, self.data, self.names)
+
+    def tissue_step_wrench(self) -> NDArray[np.float64]:
+        """The last tissue step's wrench on the probe, (6,): force [N], torque [N m] about
+        the probe origin, world frame (zeros before the first step)."""
+        step = self.coupling.last_step
+        if step is None:
+            return np.zeros(6)
+        return np.concatenate([step.force_world_n, step.torque_world_nm])
+
+    def probe_pose(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The probe site's position [m] and rotation matrix, world frame."""
+        return self.coupling.probe_pose()
+
+    # ------------------------------------------------------------------ rendering
+
+    def render(self) -> NDArray[np.uint8] | None:
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode=...")
+            return None
+        if self._renderer is None:
+            width, height = self._frame_size
+            self._renderer = SceneRenderer(
+                self.scene_config, self.tissue, width, height, self.camera_name
+            )
+        if self.render_mode == "rgb_array":
+            return self._renderer.frame(self.data)
+        self._renderer.show(self.data)
+        return None
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+
+def _pointing_down() -> NDArray[np.float64]:
+    """Probe x along world x, pressing (+y) down."""
+    return np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+
+def _axis_angle(vector: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
+    angle = float(np.linalg.norm(vector))
+    if angle < 1e-15:
+        return np.array([1.0, 0.0, 0.0]), 0.0
+    return vector / angle, angle
+
+
+def rotation_angle(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
+    """The angle between two rotation matrices [rad]."""
+    return float(np.linalg.norm(rotation_vector(a @ b.T)))

@@ -1,0 +1,447 @@
+"""``probegym/BreastCompress-v0``: compress the breast until a lesion reaches a depth."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+from gymnasium import spaces
+from numpy.typing import NDArray
+
+import tissue
+from envs.errors import EnvConfigError
+from envs.observations import LesionInImage, lesion_in_image
+from envs.probe_env import ProbeEnv, rotation_angle
+
+#: The registered episode length [steps] (5 s at 20 ms).
+MAX_EPISODE_STEPS = 250
+#: The built-in phantom's lesions whose compression by 5-7 mm is within reach of a gentle
+#: press (measured with robust LM at 1,303 tets, probe normal to the skin above each:
+#: lesion 1 at 15 mm depth moves 5 mm up the image under a 12 mm press at 1.5-2 N, lesions
+#: 6, 7 and 10 (21-40 mm deep) under 8-10 mm at 1.2-1.5 N, lesion 4 (18 mm) under 15 mm at
+#: 2.7 N; lesions 2, 3, 5, 8 and 9 lie 7-15 mm under 45-degree skin, where frictionless
+#: tissue slides out sideways: 25 mm of press and 7-8 N moved them 5 mm at most).
+PHANTOM_TARGET_LESIONS = (1, 4, 6, 7, 10)
+
+
+@dataclass(frozen=True)
+class BreastCompressConfig:
+    """BreastCompress's settings (keyword arguments of ``gymnasium.make``).
+
+    Attributes:
+        target_lesions: lesion numbers drawn from at reset; None: on the built-in phantom
+            :data:`PHANTOM_TARGET_LESIONS`, elsewhere every lesion 15 mm to the imaging depth
+            less 5 mm under the skin.
+        compression_range_m: the compression asked, drawn uniformly [m]: how far the lesion
+            must move up the image from its depth at the start.
+        depth_tolerance_m: success band about the target depth [m].
+        hold_steps: steps the lesion must stay in the band, in view, force safe.
+        safety_force_n: force above which the ``force`` term penalises [N].
+        hard_force_n: force that ends the episode as a failure [N].
+        start_offset_m: the start's lateral noise, uniform in +- this [m].
+        start_tilt_rad: the start's tilt noise, uniform in +- this about each in-plane axis.
+        workspace_m: how far the probe's target may go from the start sideways [m].
+        max_press_m: and into the tissue, along the start's pressing direction [m].
+        max_lift_m: and away from it [m].
+        max_turn_rad: how far the target may turn from the start's orientation [rad].
+    """
+
+    target_lesions: tuple[int, ...] | None = None
+    compression_range_m: tuple[float, float] = (0.005, 0.007)
+    depth_tolerance_m: float = 0.001
+    hold_steps: int = 25
+    safety_force_n: float = 5.0
+    hard_force_n: float = 10.0
+    start_offset_m: float = 0.002
+    start_tilt_rad: float = math.radians(2.0)
+    workspace_m: float = 0.03
+    max_press_m: float = 0.035
+    max_lift_m: float = 0.02
+    max_turn_rad: float = math.radians(30.0)
+
+    def __post_init__(self) -> None:
+        low, high = self.compression_range_m
+        if not (0.0 < low <= high < 0.05):
+            raise EnvConfigError(
+                f"compression_range_m must be (low, high) with 0 < low <= high < 0.05 m; got "
+                f"{self.compression_range_m!r}"
+            )
+        if not (isinstance(self.hold_steps, int) and self.hold_steps >= 1):
+            raise EnvConfigError(f"hold_steps must be a whole number >= 1; got {self.hold_steps!r}")
+        if not 0.0 < self.safety_force_n < self.hard_force_n:
+            raise EnvConfigError(
+                f"need 0 < safety_force_n < hard_force_n; got {self.safety_force_n!r}, "
+                f"{self.hard_force_n!r}"
+            )
+        for name in (
+            "depth_tolerance_m",
+            "workspace_m",
+            "max_press_m",
+            "max_lift_m",
+            "max_turn_rad",
+        ):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise EnvConfigError(f"{name} must be positive; got {value!r}")
+        for name in ("start_offset_m", "start_tilt_rad"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise EnvConfigError(f"{name} must be >= 0; got {value!r}")
+
+
+class BreastCompressEnv(ProbeEnv):
+    """Press the breast with the robot-held probe until a lesion reaches a target depth.
+
+    ## Description
+
+    A UR5e-like arm holds a linear ultrasound probe against a hyperelastic finite-element
+    breast phantom with stiff lesions (E = 2850 Pa, lesions 4 x stiffer; Tagliabue et al.
+    2020). Sonographers compress the breast to bring a lesion into a better imaging depth
+    and to judge its stiffness; here the policy must move the target lesion up the image by
+    a given compression (5-7 mm) and hold it there, in view, without pressing harder than
+    is safe. The tissue's reaction comes back to the robot (two-way coupling): pressing
+    means working against the breast.
+
+    ## Action space
+
+    ``Box(-1, 1, (6,), float32)``, in the probe frame (x: the image's lateral axis, y: into
+    the tissue, z: elevation); values beyond the box are clipped, NaN or inf raise:
+
+    | index | meaning | at +1 |
+    | --- | --- | --- |
+    | 0, 1, 2 | move the probe's target along x, y, z | 5 mm per step |
+    | 3, 4, 5 | turn it about x, y, z | 0.05 rad per step |
+
+    (``max_translation_m``, ``max_rotation_rad``). A Cartesian impedance controller (3000
+    N/m, 60 N m/rad, critically damped, gravity compensated) tracks the target at 500 Hz;
+    the target stays within 30 mm sideways, 35 mm in and 20 mm out of the start pose and 30
+    degrees of its orientation. ``control_mode="joint_delta"``: the action moves the joint
+    targets by up to 0.05 rad per step.
+
+    ## Observation space
+
+    ``Dict`` of float32 boxes (flattenable):
+
+    | key | shape | meaning |
+    | --- | --- | --- |
+    | ``probe_pose`` | (7,) | probe position [m] (phantom frame) and quaternion (w, x, y, z) |
+    | ``wrench`` | (6,) | F/T force [N], torque [N m] about the face centre, probe frame |
+    | ``joint_pos``, ``joint_vel`` | (6,) | the arm's joints [rad], [rad/s] |
+    | ``lesion`` | (4,) | target lesion in the image: lateral, depth, out-of-plane [m], visible |
+    | ``target_depth`` | (1,) | the depth to bring it to [m] |
+
+    The phantom frame has its origin at the centre of the phantom's base, on the table; the
+    quaternion is the one with w >= 0; the wrench is the sensor's, negated, with the probe's
+    own weight tared. The lesion is zeros when it is not visible.
+
+    Visible: the probe touches the skin, the lesion lies within the 40 mm aperture and 50 mm
+    of depth, and within its radius plus 1 mm of the 2 mm slice.
+
+    ## Rewards
+
+    Named terms, logged already weighted in ``info["reward_terms"]`` (the reward is their
+    sum): ``depth_error`` (-0.5 x |depth - target| / 10 mm, capped; -0.5 out of view),
+    ``centring`` (-0.2 x |lateral| / 20 mm; -0.2 out of view), ``force`` (-0.2 x the force
+    above 5 N as a share of the 5 N up to the hard limit), ``smoothness`` (-0.1 x the mean
+    squared change of the action / 4), ``success`` (+1 on the step that succeeds) and
+    ``failure`` (-(max_episode_steps + 1) on a failing last step). A step's reward lies in
+    [-1, 0] but for the last, so an episode ending in failure returns less than any that
+    does not.
+
+    ## Starting state
+
+    The probe just touches the skin above a lesion drawn from the target lesions, normal to
+    the skin (its long axis down the slope), shifted up to 2 mm sideways and tilted up to 2
+    degrees, the tissue at rest; the compression asked is drawn from 5-7 mm. All from the
+    reset's seed.
+
+    ## Episode end
+
+    Terminated with success when the lesion has stayed visible, within 1 mm of the target
+    depth and under the safety force for 25 steps (0.5 s); as a failure when the contact
+    force exceeds 10 N (``info["force_exceeded"]``), the tissue step is not ``ok``
+    (``info["tissue_unstable"]`` names the status) or the arm's state is not finite.
+    Truncated at ``max_episode_steps`` (250, 5 s).
+
+    ## Arguments
+
+    ``gymnasium.make("probegym/BreastCompress-v0", contact="lm", profile="robust",
+    mesh=1363, ...)``: see :mod:`envs.probe_env` for the common ones and
+    :class:`BreastCompressConfig` for this task's. Defaults: Lagrange-multiplier contact
+    (exact forces), the robust profile (stable under jerky poses), the 1,303-tet phantom.
+
+    ## Version history
+
+    - v0: first release.
+    """
+
+    task_config_type: ClassVar[type] = BreastCompressConfig
+    task_config: BreastCompressConfig
+
+    #: The simulated effects each term needs (see :data:`envs.observations.EFFECTS`).
+    TERM_EFFECTS: ClassVar[dict[str, tuple[str, ...]]] = {
+        "probe_pose": (),
+        "wrench": ("force_feedback",),
+        "joint_pos": (),
+        "joint_vel": (),
+        "lesion": ("deformation", "lesion_tracking"),
+        "target_depth": (),
+        "depth_error": ("deformation", "lesion_tracking"),
+        "centring": ("deformation", "lesion_tracking"),
+        "force": ("force_feedback",),
+        "smoothness": (),
+        "success": ("deformation", "lesion_tracking"),
+        "failure": ("force_feedback",),
+    }
+    WEIGHTS: ClassVar[dict[str, float]] = {
+        "depth_error": 0.5,
+        "centring": 0.2,
+        "force": 0.2,
+        "smoothness": 0.1,
+    }
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self._candidates = self._target_lesions()
+        self._target = 0
+        self._target_depth = 0.0
+        self._held = 0
+        self._lesion_now: LesionInImage | None = None
+
+    def _observation_spaces(self) -> dict[str, spaces.Space]:
+        observed = super()._observation_spaces()
+        bound = 0.1
+        observed["lesion"] = spaces.Box(
+            np.array([-bound, -bound, -bound, 0.0], dtype=np.float32),
+            np.array([bound, bound, bound, 1.0], dtype=np.float32),
+            dtype=np.float32,
+        )
+        observed["target_depth"] = spaces.Box(0.0, bound, shape=(1,), dtype=np.float32)
+        return observed
+
+    def _target_lesions(self) -> tuple[int, ...]:
+        lesions = self.tissue.lesions
+        wanted = self.task_config.target_lesions
+        if wanted is None:
+            if self.tissue.spec.mesh_kind() == "level":
+                wanted = PHANTOM_TARGET_LESIONS
+            else:
+                wanted = tuple(
+                    lesion.label
+                    for lesion in lesions
+                    if 0.015 <= self._rest_depth(lesion) <= self.imaging.imaging_depth_m - 0.005
+                )
+        labels = {lesion.label for lesion in lesions}
+        if not wanted or not set(wanted) <= labels:
+            raise EnvConfigError(
+                f"target_lesions must name lesions of this mesh, {sorted(labels)}; got {wanted!r}"
+            )
+        return tuple(wanted)
+
+    def _rest_depth(self, lesion: tissue.Lesion) -> float:
+        try:
+            position, quat = self.tissue.touching_pose(lesion.rest_centre_m)
+        except tissue.TissueInputError:
+            return -1.0
+        rotation = _matrix(quat)
+        return float((rotation.T @ (lesion.rest_centre_m - position))[1])
+
+    # ------------------------------------------------------------------ episode
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, NDArray[np.float32]], dict[str, Any]]:
+        super().reset(seed=seed)
+        rng = self.np_random
+        cfg = self.task_config
+        label = int(self._candidates[int(rng.integers(len(self._candidates)))])
+        self._target = label - 1
+        lesion = self.tissue.lesions[self._target]
+        position, quat = self.tissue.touching_pose(lesion.rest_centre_m)
+        rotation = _matrix(quat)
+        offset = rng.uniform(-cfg.start_offset_m, cfg.start_offset_m, size=2)
+        tilt = rng.uniform(-cfg.start_tilt_rad, cfg.start_tilt_rad, size=2)
+        direction = rotation @ _turn(np.array([tilt[0], 0.0, tilt[1]])) @ np.array([0.0, 1.0, 0.0])
+        aim = lesion.rest_centre_m + rotation @ np.array([offset[0], 0.0, offset[1]])
+        position, quat = self.tissue.touching_pose(aim, direction)
+        self.place_probe(position, _matrix(quat))
+        compression = float(rng.uniform(*cfg.compression_range_m))
+        start_depth = float(
+            (
+                self._start_rot.T
+                @ (self.tissue.lesion_centroids_m()[self._target] - self._start_pos)
+            )[1]
+        )
+        self._target_depth = start_depth - compression
+        self._held = 0
+        self._lesion_now = self._lesion(0.0)
+        return self._observation(), self._info(None, {}, False)
+
+    def step(
+        self, action: Any
+    ) -> tuple[dict[str, NDArray[np.float32]], float, bool, bool, dict[str, Any]]:
+        values = self._check_action(action)
+        step = self._advance(values)
+        cfg = self.task_config
+        force = self.contact_force_n(step)
+        self._lesion_now = self._lesion(force)
+        lesion = self._lesion_now
+        finite = bool(np.all(np.isfinite(self.data.qpos)) and np.all(np.isfinite(self.data.qvel)))
+        failure = {}
+        if step.status is not tissue.StepStatus.OK:
+            failure["tissue_unstable"] = step.status.value
+        if force > cfg.hard_force_n:
+            failure["force_exceeded"] = True
+        if not finite:
+            failure["robot_unstable"] = True
+        in_band = (
+            lesion.visible
+            and abs(lesion.true_depth_m - self._target_depth) <= cfg.depth_tolerance_m
+            and force <= cfg.safety_force_n
+        )
+        self._held = self._held + 1 if in_band and not failure else 0
+        success = self._held >= cfg.hold_steps
+        terms = self._reward_terms(values, lesion, force, success, bool(failure))
+        reward = float(sum(terms.values()))
+        self._last_action = values
+        terminated = success or bool(failure)
+        if not finite:
+            self._make_finite()
+        return (
+            self._observation(),
+            reward,
+            terminated,
+            False,
+            self._info(step, terms, success, failure),
+        )
+
+    # ------------------------------------------------------------------ terms
+
+    def contact_force_n(self, step: tissue.TissueStep | None) -> float:
+        """The contact force's magnitude [N] (the tissue's, on the probe)."""
+        if step is None:
+            return 0.0
+        return float(np.linalg.norm(step.force_world_n))
+
+    def _lesion(self, force: float) -> LesionInImage:
+        position, rotation = self.probe_pose()
+        lesion = self.tissue.lesions[self._target]
+        return lesion_in_image(
+            self.tissue.lesion_centroids_m()[self._target],
+            lesion.radius_m,
+            position,
+            rotation,
+            force,
+            self.imaging,
+        )
+
+    def _reward_terms(
+        self,
+        action: NDArray[np.float64],
+        lesion: LesionInImage,
+        force: float,
+        success: bool,
+        failed: bool,
+    ) -> dict[str, float]:
+        cfg, weights = self.task_config, self.WEIGHTS
+        if lesion.visible:
+            depth = min(1.0, abs(lesion.true_depth_m - self._target_depth) / 0.01)
+            centring = min(1.0, abs(lesion.true_lateral_m) / (0.5 * self.imaging.aperture_m))
+        else:
+            depth, centring = 1.0, 1.0
+        over = max(0.0, force - cfg.safety_force_n) / (cfg.hard_force_n - cfg.safety_force_n)
+        change = float(np.mean((action - self._last_action) ** 2)) / 4.0
+        horizon = self._horizon()
+        return {
+            "depth_error": -weights["depth_error"] * depth,
+            "centring": -weights["centring"] * centring,
+            "force": -weights["force"] * min(1.0, over),
+            "smoothness": -weights["smoothness"] * min(1.0, change),
+            "success": 1.0 if success else 0.0,
+            "failure": -float(horizon + 1) if failed else 0.0,
+        }
+
+    def _horizon(self) -> int:
+        spec = self.spec
+        if spec is not None and spec.max_episode_steps is not None:
+            return int(spec.max_episode_steps)
+        return MAX_EPISODE_STEPS
+
+    def _observation(self) -> dict[str, NDArray[np.float32]]:
+        observed = self._common_observation()
+        lesion = self._lesion_now
+        observed["lesion"] = (
+            np.zeros(4, dtype=np.float32)
+            if lesion is None
+            else np.clip(lesion.as_array(), -0.1, 1.0)
+        )
+        observed["target_depth"] = np.array(
+            [np.clip(self._target_depth, 0.0, 0.1)], dtype=np.float32
+        )
+        return observed
+
+    def _info(
+        self,
+        step: tissue.TissueStep | None,
+        terms: dict[str, float],
+        success: bool,
+        failure: dict[str, Any] | None = None,
+    ) -> dict[str, Any]:
+        lesion = self._lesion_now
+        info: dict[str, Any] = {
+            "is_success": bool(success),
+            "reward_terms": dict(terms),
+            "contact_force_n": self.contact_force_n(step),
+            "target_lesion": self._target + 1,
+            "target_depth_m": float(self._target_depth),
+            "lesion_depth_m": None if lesion is None else float(lesion.true_depth_m),
+            "held_steps": int(self._held),
+        }
+        if step is not None:
+            info["tissue"] = {
+                "status": step.status.value,
+                "iterations": step.diagnostics.iterations,
+                "sub_motions": step.diagnostics.sub_motions,
+                "skin_penetration_m": float(step.skin_penetration_m),
+            }
+        info.update(failure or {})
+        return info
+
+    def _clip_target(
+        self, position: NDArray[np.float64], rotation: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        cfg = self.task_config
+        local = self._start_rot.T @ (position - self._start_pos)
+        local[0] = np.clip(local[0], -cfg.workspace_m, cfg.workspace_m)
+        local[2] = np.clip(local[2], -cfg.workspace_m, cfg.workspace_m)
+        local[1] = np.clip(local[1], -cfg.max_lift_m, cfg.max_press_m)
+        position = self._start_pos + self._start_rot @ local
+        if rotation_angle(rotation, self._start_rot) > cfg.max_turn_rad:
+            rotation = self.controller.target_rot  # type: ignore[union-attr]
+        return position, rotation
+
+    def _make_finite(self) -> None:
+        """After a non-finite arm state (the episode ends), leave the arm at the start pose."""
+        self.place_probe(self._start_pos, self._start_rot)
+
+
+def _matrix(quat: NDArray[np.float64]) -> NDArray[np.float64]:
+    import mujoco
+
+    matrix = np.empty(9)
+    mujoco.mju_quat2Mat(matrix, np.asarray(quat, dtype=np.float64))
+    return matrix.reshape(3, 3)
+
+
+def _turn(vector: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The rotation matrix of a rotation vector [rad]."""
+    import mujoco
+
+    angle = float(np.linalg.norm(vector))
+    if angle == 0.0:
+        return np.eye(3)
+    quat = np.empty(4)
+    mujoco.mju_axisAngle2Quat(quat, vector / angle, angle)
+    return _matrix(quat)
