@@ -157,6 +157,12 @@ def _build_parser() -> argparse.ArgumentParser:
     contact.add_argument("--methods", default=None, help="comma-separated; default all four")
     contact.add_argument("--modes", default="paper,robust", help="comma-separated modes")
     contact.add_argument("--json", type=Path, default=Path("bench_contact.json"))
+    env = bench_kinds.add_parser("env", help="environment steps per second, per method")
+    env.add_argument("--ids", default=None, help="comma-separated env ids; default all")
+    env.add_argument("--methods", default=None, help="comma-separated; default all four")
+    env.add_argument("--profiles", default="robust", help="comma-separated profiles")
+    env.add_argument("--levels", type=_levels, default=None, help="default 1363,2539")
+    env.add_argument("--json", type=Path, default=Path("bench_env.json"))
     peer = bench_kinds.add_parser("peer", help="ours against MuJoCo's flex, same phantom")
     peer.add_argument("--levels", type=_levels, default=None, help="default 623,4126,26220")
     peer.add_argument("--sim-seconds", type=float, default=1.0, help="simulated seconds per run")
@@ -247,6 +253,20 @@ def main(argv: Sequence[str] | None = None) -> int:
             for name in modes:
                 IntegrationMode.parse(name)
             run_contact_benchmark(args.levels, methods, modes, args.json)
+            return 0
+        if args.command == "bench" and args.bench == "env":
+            from agents.env_benchmark import run_env_benchmark
+            from tissue.contact import ContactMethod
+            from tissue.spec import Profile
+
+            methods = args.methods.split(",") if args.methods else None
+            for name in methods or []:
+                ContactMethod.parse(name)
+            profiles = args.profiles.split(",")
+            for name in profiles:
+                Profile.parse(name)
+            ids = args.ids.split(",") if args.ids else None
+            run_env_benchmark(ids, methods, profiles, args.levels, args.json)
             return 0
         if args.command == "bench" and args.bench == "peer":
             from agents.peer_benchmark import run_peer_benchmark

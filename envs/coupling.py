@@ -26,6 +26,7 @@ the tissue (contact only pushes): where it would, no wrench is applied. PBD has 
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -88,6 +89,9 @@ class TissueCoupling:
         self._q0_pos = np.zeros(3)
         self._q0_rot = np.eye(3)
         self.last_step: tissue.TissueStep | None = None
+        #: Wall time of the last step's parts [s]: substeps (controller included), the
+        #: tissue's step, its wrench stiffness.
+        self.timing: dict[str, float] = {"substeps_s": 0.0, "tissue_s": 0.0, "stiffness_s": 0.0}
 
     # ------------------------------------------------------------------ probe pose
 
@@ -116,12 +120,14 @@ class TissueCoupling:
         """``substeps`` MuJoCo substeps (``control(data)`` gives the arm's motor commands
         before each, positions and velocities computed), then one tissue step."""
         model, data = self.model, self.data
+        started = time.perf_counter()
         for _ in range(self.substeps):
             mujoco.mj_step1(model, data)
             self.before_substep()
             data.ctrl[self.names.actuators] = control(data)
             mujoco.mj_step2(model, data)
         mujoco.mj_kinematics(model, data)  # the probe's pose after the last substep
+        self.timing["substeps_s"] = time.perf_counter() - started
         return self.after_substeps()
 
     def before_substep(self) -> None:
@@ -158,7 +164,9 @@ class TissueCoupling:
         """The tissue's step with the probe where the substeps left it (positions computed);
         its wrench and stiffness then act until the next."""
         position, rotation = self.probe_pose()
+        started = time.perf_counter()
         step = self.tissue.step(position, _quat(rotation))
+        stepped = time.perf_counter()
         self._q0_pos, self._q0_rot = position, rotation
         if step.status in (tissue.StepStatus.DIVERGED, tissue.StepStatus.SOLVER_FAILED):
             self._w0[:] = 0.0
@@ -167,6 +175,8 @@ class TissueCoupling:
             self._w0 = np.concatenate([step.force_world_n, step.torque_world_nm])
             stiffness = self.tissue.wrench_stiffness() if self.linearised else None
             self._stiffness = np.zeros((6, 6)) if stiffness is None else stiffness
+        self.timing["tissue_s"] = stepped - started
+        self.timing["stiffness_s"] = time.perf_counter() - stepped
         self.last_step = step
         return step
 

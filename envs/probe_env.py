@@ -12,7 +12,8 @@ phantom level or a mesh file, see ``tissue.TissueSpec``), ``young_pa``, ``poisso
 ``lesion_stiffness_ratio``, ``control_mode`` (cartesian_impedance | joint_delta),
 ``stiffness_n_per_m`` (the probe impedance's translational stiffness), ``render_mode``
 (rgb_array | human), ``camera_name`` (overview | probe_side), ``width``, ``height``,
-``robot`` (an MJCF arm) and ``flange_site``, ``robot_dt``, ``reaction`` (False: one-way
+``robot`` (an MJCF arm) and ``flange_site``, ``robot_base_m`` (where its base stands),
+``robot_dt``, ``reaction`` (False: one-way
 coupling), ``max_translation_m`` and ``max_rotation_rad`` (the action's scale), and the
 imaging geometry ``aperture_m``, ``imaging_depth_m``, ``slice_thickness_m``.
 """
@@ -110,6 +111,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[np.float32]], NDArray[np.float32]]):
         height: int = 480,
         robot: str | None = None,
         flange_site: str | None = None,
+        robot_base_m: tuple[float, float, float] | None = None,
         robot_dt: float = 0.002,
         reaction: bool = True,
         **kwargs: Any,
@@ -165,6 +167,8 @@ class ProbeEnv(gym.Env[dict[str, NDArray[np.float32]], NDArray[np.float32]]):
             scene_kwargs["robot_path"] = robot
         if flange_site is not None:
             scene_kwargs["flange_site"] = flange_site
+        if robot_base_m is not None:
+            scene_kwargs["robot_base_m"] = tuple(robot_base_m)
         self.scene_config = SceneConfig(**scene_kwargs)
         self.tissue = tissue.make_tissue(
             mesh=mesh,
@@ -314,7 +318,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[np.float32]], NDArray[np.float32]]):
         started = time.perf_counter()
         self._apply_action(action)
         self.controller.update_inertia(self.data)
-        controller_s = 0.0
+        controller_s = time.perf_counter() - started
 
         def control(data: mujoco.MjData) -> NDArray[np.float64]:
             nonlocal controller_s
@@ -323,17 +327,15 @@ class ProbeEnv(gym.Env[dict[str, NDArray[np.float32]], NDArray[np.float32]]):
             controller_s += time.perf_counter() - tic
             return torques
 
-        coupled = time.perf_counter()
         step = self.coupling.step(control)
-        done = time.perf_counter()
+        timing = self.coupling.timing
         self.last_timing = {
-            "controller_s": controller_s + (coupled - started),
-            "robot_s": 0.0,  # filled below
-            "tissue_s": step.diagnostics.compute_ms * 1e-3,
+            "controller_s": controller_s,
+            "robot_s": max(0.0, timing["substeps_s"] - controller_s),
+            "tissue_s": timing["tissue_s"] + timing["stiffness_s"],
+            "stiffness_s": timing["stiffness_s"],
+            "observation_s": 0.0,
         }
-        self.last_timing["robot_s"] = max(
-            0.0, (done - coupled) - self.last_timing["tissue_s"] - controller_s
-        )
         return step
 
     # ------------------------------------------------------------------ observations

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -284,6 +285,7 @@ class BreastCompressEnv(ProbeEnv):
     ) -> tuple[dict[str, NDArray[np.float32]], float, bool, bool, dict[str, Any]]:
         values = self._check_action(action)
         step = self._advance(values)
+        observed_from = time.perf_counter()
         cfg = self.task_config
         force = self.contact_force_n(step)
         self._lesion_now = self._lesion(force)
@@ -309,13 +311,10 @@ class BreastCompressEnv(ProbeEnv):
         terminated = success or bool(failure)
         if not finite:
             self._make_finite()
-        return (
-            self._observation(),
-            reward,
-            terminated,
-            False,
-            self._info(step, terms, success, failure),
-        )
+        observation = self._observation()
+        info = self._info(step, terms, success, failure)
+        self.last_timing["observation_s"] = time.perf_counter() - observed_from
+        return observation, reward, terminated, False, info
 
     # ------------------------------------------------------------------ terms
 
