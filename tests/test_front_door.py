@@ -195,7 +195,12 @@ def test_a_30_mm_teleport_never_ends_ok_with_the_skin_behind_the_probe(
         assert float(-jumped.force_world_n @ pressing) >= 0.8 * float(
             -pressed.force_world_n @ pressing
         )
-        assert jumped.skin_penetration_m <= max(pressed.skin_penetration_m, 0.5e-3) + 1e-4
+        if method == "prescribed" and profile == "paper":
+            # The paper's node set, fixed at first contact, does not hold the skin between
+            # its nodes: the penetration is reported, and stays short of the mid-plane.
+            assert jumped.skin_penetration_m < t.contact_model.max_sub_motion_m
+        else:
+            assert jumped.skin_penetration_m <= max(pressed.skin_penetration_m, 0.5e-3) + 1e-4
 
 
 def test_the_probe_frame_is_documented_and_used():

@@ -24,7 +24,7 @@ from tissue.material import TissueMaterials
 from tissue.mesh import TetMesh, boundary_faces
 from tissue.pbd import PBDConfig, PBDContact
 from tissue.phantom import breast_phantom
-from tissue.probe import LinearProbeFace, Probe, ProbeShape
+from tissue.probe import LinearProbeFace, Probe, ProbeShape, quat_to_matrix
 from tissue.simulator import SimulationConfig, TissueSimulator
 from tissue.status import SEVERITY, StepStatus
 
@@ -85,25 +85,37 @@ class CalibrationResult:
         )
 
 
+def pressing_direction_of(mesh: TetMesh) -> NDArray[np.float64]:
+    """The direction a calibration press takes: from the tissue towards its fixed base (the
+    built-in phantom's -z; the published scene, whose base is at its largest z, +z), unit,
+    (3,); -z where nothing is fixed."""
+    if mesh.fixed_nodes.size == 0:
+        return np.array([0.0, 0.0, -1.0])
+    towards = mesh.nodes[mesh.fixed_nodes].mean(axis=0) - mesh.nodes.mean(axis=0)
+    norm = float(np.linalg.norm(towards))
+    return towards / norm if norm > 0.0 else np.array([0.0, 0.0, -1.0])
+
+
 def _face_pose_and_footprint(
     mesh: TetMesh, face: ProbeShape, points: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
-    """The face pressing down at the centre of the mesh's plan: origin at the height of the
-    highest of ``points`` under its outline, quaternion, and the indices of those points."""
-
-    centre = 0.5 * (mesh.nodes[:, :2].min(axis=0) + mesh.nodes[:, :2].max(axis=0))
-    probe = Probe.looking_along(face, (centre[0], centre[1], 0.0), (0.0, 0.0, -1.0))
-    # A point lies under the outline if it is inside the probe once lifted into the probe's
-    # body: the face presses along -z, so its body is above, at z in (0, thickness).
-    lifted = points.copy()
+    """The face pressing towards the fixed base (:func:`pressing_direction_of`) at the centre
+    of the mesh's bounding box: origin at the highest of ``points`` under its outline
+    (highest against the pressing direction), quaternion, and the indices of those points."""
+    direction = pressing_direction_of(mesh)
+    centre = 0.5 * (mesh.nodes.min(axis=0) + mesh.nodes.max(axis=0))
+    probe = Probe.looking_along(face, centre, direction)
+    # A point lies under the outline if it is inside the probe once moved into the probe's
+    # body: onto the plane through the centre, then half the body's depth behind it.
     body_depth = float(-face.surface()[0][:, 1].min())
-    lifted[:, 2] = 0.5 * body_depth
+    height = -(points - centre) @ direction
+    lifted = points + height[:, None] * direction[None, :] - 0.5 * body_depth * direction
     distance, _ = probe.signed_distance_world(lifted)
     under = np.flatnonzero(distance < 0.0)
     if under.size == 0:
         raise TissueInputError("no surface point lies under the probe face at the mesh's centre")
-    top = float(points[under, 2].max())
-    return np.array([centre[0], centre[1], top]), probe.quat_wxyz.copy(), under
+    top = float(height[under].max())
+    return centre - top * direction, probe.quat_wxyz.copy(), under
 
 
 def _ramp_depths(depth_m: float, speed_m_s: float, hold_s: float, dt: float) -> list[float]:
@@ -210,16 +222,18 @@ def _press(
     speed_m_s: float,
     hold_s: float,
 ) -> CompressionResponse:
-    """Press ``model``'s probe from ``origin`` down -z to ``depth_m`` and hold."""
+    """Press ``model``'s probe from ``origin`` along its pressing direction to ``depth_m``
+    and hold. The force is its component along the pressing direction, reversed (> 0)."""
+    direction = quat_to_matrix(quat)[:, 1]
     rest = model.landmark_positions()
     worst = StepStatus.OK
     times = []
     force = 0.0
     for depth in _ramp_depths(depth_m, speed_m_s, hold_s, model.dt):
-        result = model.step(origin - np.array([0.0, 0.0, depth]), quat)
+        result = model.step(origin + depth * direction, quat)
         times.append(result.compute_ms)
         worst = max(worst, result.status, key=_severity)
-        force = float(result.force_world[2])
+        force = float(-result.force_world @ direction)
     return CompressionResponse(
         force_n=force,
         lesion_displacements_m=model.landmark_positions() - rest,
