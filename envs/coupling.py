@@ -19,9 +19,11 @@ stiff contact sampled every 20 ms chatters (the robot overshoots into the tissue
 step pushes it out too far); with K the robot feels the tissue as the spring it is, at its
 own 2 ms rate, and only the tissue's slower dynamics (inertia, damping, the contact set) are
 sampled. K is the stiffness of one tissue step (inertia included, stiffer than the static
-tissue), so the hold errs on the stable side. The linearised force never pulls the probe into
-the tissue (contact only pushes): where it would, no wrench is applied. PBD has no tangent
-(K = 0: a zero-order hold).
+tissue), so the hold errs on the stable side. K costs about a tissue step to compute, so it
+is computed again only when the contact set changes, the probe has moved 1 mm, or every 10
+steps: it keeps the substeps stable; the tissue's own steps keep the force exact. The
+linearised force never pulls the probe into the tissue (contact only pushes): where it
+would, no wrench is applied. PBD has no tangent (K = 0: a zero-order hold).
 """
 
 from __future__ import annotations
@@ -35,9 +37,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 import tissue
-from envs.controller import rotation_vector
+from envs.controller import cross3, rotation_vector
 from envs.errors import EnvConfigError
 from envs.scene import SceneNames
+
+#: K is computed again at least every this many tissue steps ...
+STIFFNESS_REFRESH_STEPS = 10
+#: ... and once the probe has moved this far from where it was computed [m].
+STIFFNESS_REFRESH_M = 0.001
 
 
 @dataclass(frozen=True)
@@ -88,6 +95,8 @@ class TissueCoupling:
         self._stiffness = np.zeros((6, 6))
         self._q0_pos = np.zeros(3)
         self._q0_rot = np.eye(3)
+        # (contact points, probe position [m], steps since) when K was last computed.
+        self._stiffness_from: tuple[int, NDArray[np.float64], int] | None = None
         self.last_step: tissue.TissueStep | None = None
         #: Wall time of the last step's parts [s]: substeps (controller included), the
         #: tissue's step, its wrench stiffness.
@@ -110,6 +119,7 @@ class TissueCoupling:
         self.tissue.reset(position, _quat(rotation))
         self._w0[:] = 0.0
         self._stiffness[:] = 0.0
+        self._stiffness_from = None
         self._q0_pos, self._q0_rot = position, rotation
         self.data.xfrc_applied[self.names.probe_body] = 0.0
         self.last_step = None
@@ -141,7 +151,7 @@ class TissueCoupling:
         origin = self.data.site_xpos[self.names.probe_site]
         centre = self.data.xipos[body]
         # xfrc_applied acts at the body's centre of mass: move the torque there.
-        torque = wrench.torque + np.cross(origin - centre, wrench.force)
+        torque = wrench.torque + cross3(origin - centre, wrench.force)
         self.data.xfrc_applied[body, :3] = wrench.force
         self.data.xfrc_applied[body, 3:] = torque
 
@@ -160,6 +170,21 @@ class TissueCoupling:
                 w = np.zeros(6)  # contact only pushes the probe back
         return ProbeWrench(w[:3].copy(), w[3:].copy())
 
+    def _stiffness_stale(self, step: tissue.TissueStep, position: NDArray[np.float64]) -> bool:
+        """Whether K must be computed again (one factorisation of the tissue's tangent and a
+        solve per contact point, as much as a tissue step): when the contact set grew or
+        shrank, the probe moved more than :data:`STIFFNESS_REFRESH_M` since, or it is
+        :data:`STIFFNESS_REFRESH_STEPS` steps old. K only needs to be about right: it keeps
+        the substeps stable, the tissue's steps keep the force exact."""
+        if self._stiffness_from is None:
+            return True
+        count, where, age = self._stiffness_from
+        return (
+            step.diagnostics.contact_count != count
+            or age + 1 >= STIFFNESS_REFRESH_STEPS
+            or float(np.linalg.norm(position - where)) > STIFFNESS_REFRESH_M
+        )
+
     def after_substeps(self) -> tissue.TissueStep:
         """The tissue's step with the probe where the substeps left it (positions computed);
         its wrench and stiffness then act until the next."""
@@ -171,10 +196,16 @@ class TissueCoupling:
         if step.status in (tissue.StepStatus.DIVERGED, tissue.StepStatus.SOLVER_FAILED):
             self._w0[:] = 0.0
             self._stiffness[:] = 0.0
+            self._stiffness_from = None
         else:
             self._w0 = np.concatenate([step.force_world_n, step.torque_world_nm])
-            stiffness = self.tissue.wrench_stiffness() if self.linearised else None
-            self._stiffness = np.zeros((6, 6)) if stiffness is None else stiffness
+            if self.linearised and self._stiffness_stale(step, position):
+                stiffness = self.tissue.wrench_stiffness()
+                self._stiffness = np.zeros((6, 6)) if stiffness is None else stiffness
+                self._stiffness_from = (step.diagnostics.contact_count, position, 0)
+            elif self._stiffness_from is not None:
+                count, where, age = self._stiffness_from
+                self._stiffness_from = (count, where, age + 1)
         self.timing["tissue_s"] = stepped - started
         self.timing["stiffness_s"] = time.perf_counter() - stepped
         self.last_step = step

@@ -18,6 +18,7 @@ import mujoco
 import numpy as np
 from numpy.typing import NDArray
 
+from envs.controller import cross3
 from envs.errors import EnvConfigError
 from envs.scene import SceneNames
 
@@ -118,8 +119,8 @@ def sensed_wrench(
     weight = model.body_mass[body] * model.opt.gravity
     site_pos = data.site_xpos[site]
     force = -site_rot @ force_site - weight
-    torque_about_site = -site_rot @ torque_site - np.cross(data.xipos[body] - site_pos, weight)
+    torque_about_site = -site_rot @ torque_site - cross3(data.xipos[body] - site_pos, weight)
     origin = data.site_xpos[names.probe_site]
-    torque = torque_about_site + np.cross(site_pos - origin, force)
+    torque = torque_about_site + cross3(site_pos - origin, force)
     probe_rot = data.site_xmat[names.probe_site].reshape(3, 3)
     return np.concatenate([probe_rot.T @ force, probe_rot.T @ torque])

@@ -26,9 +26,11 @@ from tissue.contact.placement import first_contact_pose, radial_roll_rad, skin_n
 from tissue.errors import TissueInputError
 from tissue.lesions import Lesion, LesionTracker
 from tissue.probe import ProbeShape, quat_to_matrix
+from tissue.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.spec import ResolvedTissue, TissueSpec, resolve_spec
 from tissue.status import StepStatus
 from tissue.surface_mesh import SurfaceMesh, SurfaceView
+from tissue.threads import one_thread_below
 from tissue.wrench_stiffness import wrench_stiffness
 
 
@@ -315,7 +317,9 @@ class Tissue:
         linearised at the present state and contact set; see
         :mod:`tissue.wrench_stiffness` for how and what it costs. None for PBD (no
         tangent)."""
-        return wrench_stiffness(self._model)
+        # Under the step's thread rule: a small tissue's kernels on one thread (tissue.threads).
+        with one_thread_below(3 * self._resolved.mesh.node_count, SERIAL_STEP_UNKNOWNS):
+            return wrench_stiffness(self._model)
 
     # ------------------------------------------------------------------ snapshots
 

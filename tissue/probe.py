@@ -942,6 +942,23 @@ def matrix_to_quat(rotation: ArrayLike) -> NDArray[np.float64]:
     return -quat if quat[0] < 0.0 else quat
 
 
+@nb.njit(cache=True)
+def _in_box(points, origin, rotation, bounds, margin, out):  # pragma: no cover - compiled
+    """out[i]: point i [m] lies in the probe-frame box ``bounds`` widened by ``margin``."""
+    for i in range(points.shape[0]):
+        inside = True
+        for axis in range(3):
+            value = (
+                (points[i, 0] - origin[0]) * rotation[0, axis]
+                + (points[i, 1] - origin[1]) * rotation[1, axis]
+                + (points[i, 2] - origin[2]) * rotation[2, axis]
+            )
+            if value < bounds[0, axis] - margin or value > bounds[1, axis] + margin:
+                inside = False
+                break
+        out[i] = inside
+
+
 def _normalised_quat(quat_wxyz: ArrayLike) -> NDArray[np.float64]:
     quat = np.asarray(quat_wxyz, dtype=np.float64).ravel()
     if quat.shape != (4,) or not np.isfinite(quat).all():
@@ -981,6 +998,7 @@ class Probe:
     quat_wxyz: NDArray[np.float64] = field(default_factory=_identity_quat)
 
     def __post_init__(self) -> None:
+        self._bounds: NDArray[np.float64] | None = None
         if not isinstance(self.shape, ProbeShape):
             raise ConfigError(
                 f"probe shape must be a ProbeShape (see parse_probe_spec); got {self.shape!r}"
@@ -1031,10 +1049,18 @@ class Probe:
         distance for those alone (a few dozen of the ~500 skin points at the phantom's
         apex). A box, not a ball about the origin: the probe's body reaches 80 mm behind
         the face, and a ball holding it would hold most of the phantom."""
-        bounds = self.shape.local_bounds_m()
-        local = (points_world - self.position_world) @ self._rotation
-        inside = (local >= bounds[0] - margin_m) & (local <= bounds[1] + margin_m)
-        return inside.all(axis=1)
+        if self._bounds is None:
+            self._bounds = self.shape.local_bounds_m()
+        out = np.empty(points_world.shape[0], dtype=np.bool_)
+        _in_box(
+            np.ascontiguousarray(points_world, dtype=np.float64),
+            self.position_world,
+            self._rotation,
+            self._bounds,
+            float(margin_m),
+            out,
+        )
+        return out
 
     def deepest_inside_m(self, points_world: NDArray[np.float64]) -> float:
         """How deep the deepest of ``points_world`` [m] (n, 3) lies inside the probe [m]

@@ -17,7 +17,7 @@ probe's mid-plane there: where half the samples or more are, the step is ``tunne
 Skin that is only a little inside the probe (less than that depth) is not flagged: it is
 reported as the step's skin penetration.
 
-Limitations: the samples cover the face's footprint (a 5 x 3 grid); a probe that passes
+Limitations: the samples lie on the face's centre line (five along its length); a probe that passes
 through the skin with its side or its back is not seen. The skin must be closed (the
 phantom's and the published scene's collision surfaces are; a volume's boundary is).
 """
@@ -33,11 +33,11 @@ from tissue.probe import Probe
 # Samples are inset this far from the face's outline [m]: between skin vertices wrapped
 # round the face's rounded rim, skin triangles cut chords into the probe's corners.
 _INSET_M = 0.003
-_GRID = (5, 3)
+_GRID = (5, 1)
 
 
 def face_samples(probe: Probe, skin_edge_m: float) -> NDArray[np.float64]:
-    """The check's sample points in the probe frame [m], (k, 3): a grid over the face, at
+    """The check's sample points in the probe frame [m], (k, 3): a line along the face, at
     half the probe's thinnest dimension behind the face or at the skin's mean edge length
     ``skin_edge_m`` [m] if that is deeper, keeping the points at least
     max(:data:`_INSET_M`, half an edge) inside the probe's outline. A skin triangle bridging
@@ -62,7 +62,10 @@ def face_samples(probe: Probe, skin_edge_m: float) -> NDArray[np.float64]:
     chosen = np.ones(inside.shape[0], dtype=bool)
     for axis, count in ((0, _GRID[0]), (2, _GRID[1])):
         values = np.unique(inside[:, axis])
-        picks = values[np.unique(np.round(np.linspace(0, values.size - 1, count)).astype(int))]
+        if count == 1:
+            picks = values[[(values.size - 1) // 2]]  # the middle one
+        else:
+            picks = values[np.unique(np.round(np.linspace(0, values.size - 1, count)).astype(int))]
         chosen &= np.isin(inside[:, axis], picks)
     return inside[chosen]
 
