@@ -112,9 +112,11 @@ def _check_scenario(runs, level: int, method: str, profile: str) -> None:
     elif method == "pbd" and profile == "robust":
         assert penetration.max() <= 1e-3
     if profile == "robust" and method != "lm":
+        # Within 20 % of LM's force (PBD, calibrated for the mesh on another press: 15 %).
+        share = 0.15 if method == "pbd" else 0.2
         reference = _run(runs, level, "lm", "robust")["forces"]
         for name, force in run["forces"].items():
-            assert abs(force - reference[name]) <= 0.2 * reference[name] + 1e-3, (name, force)
+            assert abs(force - reference[name]) <= share * reference[name] + 1e-3, (name, force)
 
 
 @pytest.mark.parametrize("profile", PROFILES)
