@@ -11,7 +11,6 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from tissue import configure_threads
 from tissue.errors import ConfigError, TissueInputError
 
 
@@ -198,6 +197,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         # The process's thread policy, explicitly (TBB, MKL sequential; see tissue.threads).
+        from tissue import configure_threads
+
         configure_threads()
         if args.command == "demo":
             from agents.tissue_demo import run_demo

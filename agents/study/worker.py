@@ -1,4 +1,4 @@
-"""Start-up of a local worker process (imports nothing numerical, on purpose)."""
+"""Start-up of a local worker process: its share of the cores, and its end with the study."""
 
 from __future__ import annotations
 
@@ -14,15 +14,18 @@ _PR_SET_PDEATHSIG = 1
 def init_worker(workers: int, parent_pid: int | None = None) -> None:
     """Share the machine's cores among ``workers`` processes, and end with the study.
 
-    Runs before the worker imports numba or MKL, which read these variables once.
+    The thread policy is set with :func:`tissue.configure_threads` (numba's kernels on
+    ``cores // workers`` threads, MKL sequential), not with environment variables: the
+    worker may have imported numba already (unpickling its task imports ``tissue``), and
+    numba refuses a thread count changed in the environment after its threads started.
 
     Args:
         workers: how many worker processes share the machine.
         parent_pid: the study's process; the worker exits when it is gone.
     """
-    threads = str(max(1, (os.cpu_count() or 1) // max(1, workers)))
-    for name in ("NUMBA_NUM_THREADS", "MKL_NUM_THREADS", "OMP_NUM_THREADS"):
-        os.environ[name] = threads
+    from tissue import configure_threads
+
+    configure_threads(threads=max(1, (os.cpu_count() or 1) // max(1, workers)))
     _exit_with_parent(parent_pid)
 
 
