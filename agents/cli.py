@@ -62,7 +62,9 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     demo.add_argument("--level", type=_level, default=4126, help="phantom mesh level (tet count)")
     demo.add_argument("--depth-mm", type=float, default=10.0, help="compression depth [mm]")
-    demo.add_argument("--mode", choices=["paper", "robust"], default="robust")
+    demo.add_argument(
+        "--profile", "--mode", dest="mode", choices=["paper", "robust"], default="robust"
+    )
 
     mesh = commands.add_parser("mesh", help="write a phantom mesh level to a file")
     mesh.add_argument("--level", type=_level, required=True, help="tet-count level, e.g. 4126")
@@ -80,7 +82,10 @@ def _build_parser() -> argparse.ArgumentParser:
     tissue_source.add_argument("--scene", type=Path, help="a directory in the published layout")
     compress.add_argument("--fixed-plane", help="with --mesh FILE: fix nodes on e.g. z=min")
     compress.add_argument("--fixed-nodes", type=Path, help="with --mesh FILE: file of node indices")
-    compress.add_argument("--lesion", type=int, default=1, help="with --scene: tumour number")
+    compress.add_argument("--lesion", type=int, default=None, help="with --scene: tumour number")
+    compress.add_argument(
+        "--scale", type=float, default=None, help="with --mesh FILE: factor to metres (0.001: mm)"
+    )
     compress.add_argument("--young", type=float, help="tissue Young's modulus [Pa] (default 2850)")
     compress.add_argument("--poisson", type=float, help="tissue Poisson ratio (default 0.49)")
     compress.add_argument(
@@ -100,15 +105,20 @@ def _build_parser() -> argparse.ArgumentParser:
         default=None,
         help="most steps held still at each depth to settle (default 250, 5 s)",
     )
-    compress.add_argument("--method", default="lm", help="penalty | lm | prescribed | pbd")
-    compress.add_argument("--mode", default="robust", help="paper | robust")
+    compress.add_argument(
+        "--contact", "--method", dest="method", default="lm", help="penalty | lm | prescribed | pbd"
+    )
+    compress.add_argument(
+        "--profile", "--mode", dest="mode", default="robust", help="paper | robust"
+    )
     compress.add_argument(
         "--online",
         action=argparse.BooleanOptionalAction,
         default=None,
-        help="prescribed: update the contact node set every step (default: on in robust "
-        "mode, as the study's robust configuration; off in paper mode, the set fixed at "
-        "first contact or the scene's own)",
+        help="prescribed: update the contact node set every step, the nodes sticking to "
+        "the probe (--online, as the study's robust cells) or fix it at first contact or "
+        "the scene's own (--no-online); default: the profile's (robust: online, sliding, "
+        "the skin guarded; paper: fixed)",
     )
     compress.add_argument(
         "--sliding",
@@ -116,7 +126,9 @@ def _build_parser() -> argparse.ArgumentParser:
         help="prescribed, online: frictionless contact (nodes held along the probe's normal "
         "only, free to slide on it) instead of nodes moving rigidly with the probe",
     )
-    compress.add_argument("--json", type=Path, default=Path("compress.json"))
+    compress.add_argument(
+        "--json", type=Path, default=None, help="output (default probegym-out/compress/)"
+    )
     compress.add_argument(
         "--case",
         default=None,
@@ -134,11 +146,18 @@ def _build_parser() -> argparse.ArgumentParser:
         "hard-cases", help="the hard-case catalogue: which methods stay stable where"
     )
     hard.add_argument("--cases", default=None, help="comma-separated names; default all small")
-    hard.add_argument("--methods", default="lm,penalty,prescribed,pbd", help="comma-separated")
-    hard.add_argument("--config", default="robust", help="paper | robust | paper,robust")
+    hard.add_argument(
+        "--contact", "--methods", dest="methods", default="lm,penalty,prescribed,pbd",
+        help="comma-separated contact methods",
+    )  # fmt: skip
+    hard.add_argument(
+        "--profile", "--config", dest="config", default="robust", help="paper | robust | both"
+    )
     hard.add_argument("--level", type=_level, default=None, help="override every case's level")
     hard.add_argument("--scene", type=Path, default=None, help="published scene (paper_level4)")
-    hard.add_argument("--json", type=Path, default=Path("hard_cases.json"))
+    hard.add_argument(
+        "--json", type=Path, default=None, help="output (default probegym-out/hard-cases/)"
+    )
 
     bench = commands.add_parser("bench", help="benchmarks that print a table and write JSON")
     bench_kinds = bench.add_subparsers(dest="bench", required=True, metavar="BENCHMARK")
@@ -150,22 +169,30 @@ def _build_parser() -> argparse.ArgumentParser:
         help="comma-separated levels (default: 623 to 26220; add 105004,176506 for the finest)",
     )
     tissue.add_argument("--repeats", type=int, default=15, help="timed repeats per figure")
-    tissue.add_argument("--json", type=Path, default=Path("bench_tissue.json"))
+    tissue.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
     contact = bench_kinds.add_parser("contact", help="step time, force, penetration per method")
     contact.add_argument("--levels", type=_levels, default=None, help="default 623 to 26220")
-    contact.add_argument("--methods", default=None, help="comma-separated; default all four")
-    contact.add_argument("--modes", default="paper,robust", help="comma-separated modes")
-    contact.add_argument("--json", type=Path, default=Path("bench_contact.json"))
+    contact.add_argument(
+        "--contact", "--methods", dest="methods", default=None, help="comma-separated; default all"
+    )
+    contact.add_argument(
+        "--profile", "--modes", dest="modes", default="paper,robust", help="comma-separated"
+    )
+    contact.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
     env = bench_kinds.add_parser("env", help="environment steps per second, per method")
     env.add_argument("--ids", default=None, help="comma-separated env ids; default all")
-    env.add_argument("--methods", default=None, help="comma-separated; default all four")
-    env.add_argument("--profiles", default="robust", help="comma-separated profiles")
+    env.add_argument(
+        "--contact", "--methods", dest="methods", default=None, help="comma-separated; default all"
+    )
+    env.add_argument(
+        "--profile", "--profiles", dest="profiles", default="robust", help="comma-separated"
+    )
     env.add_argument("--levels", type=_levels, default=None, help="default 1363,2539")
-    env.add_argument("--json", type=Path, default=Path("bench_env.json"))
+    env.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
     peer = bench_kinds.add_parser("peer", help="ours against MuJoCo's flex, same phantom")
     peer.add_argument("--levels", type=_levels, default=None, help="default 623,4126,26220")
     peer.add_argument("--sim-seconds", type=float, default=1.0, help="simulated seconds per run")
-    peer.add_argument("--json", type=Path, default=Path("bench_peer.json"))
+    peer.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
     return parser
 
 
@@ -196,89 +223,130 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = _build_parser()
     args = parser.parse_args(argv)
     try:
+        _check_outputs(args)  # before any work: a bad path is a one-line error, exit 2
         # The process's thread policy, explicitly (TBB, MKL sequential; see tissue.threads).
         from tissue import configure_threads
 
         configure_threads()
-        if args.command == "demo":
-            from agents.tissue_demo import run_demo
-
-            return run_demo(level=args.level, depth_m=args.depth_mm * 1e-3, mode=args.mode)
-        if args.command == "compress" and args.case is not None:
-            from agents.hard_cases import run_catalogue
-            from tissue.phantom import parse_level
-
-            _reject_options_a_case_sets(parser, args)
-
-            level = None if args.mesh is None else parse_level(args.mesh)
-            records = run_catalogue(
-                [args.case], [args.method], [args.mode], level, args.scene, args.json
-            )
-            return 0 if all(record["stable"] for record in records) else 1
-        if args.command == "compress":
-            from agents.compress_command import run_compress_command
-
-            return run_compress_command(args)
-        if args.command == "study":
-            from agents.study.command import run_study_command
-
-            return run_study_command(args)
-        if args.command == "hard-cases":
-            from agents.hard_cases import SMALL_CASES, run_catalogue
-            from tissue.integrator import IntegrationMode
-
-            configs = [IntegrationMode.parse(c).value for c in args.config.split(",")]
-            cases = args.cases.split(",") if args.cases else list(SMALL_CASES)
-            run_catalogue(
-                cases, args.methods.split(","), configs, args.level, args.scene, args.json
-            )
-            return 0
-        if args.command == "mesh":
-            return _mesh(args.level, args.out)
-        if args.command == "bench" and args.bench == "tissue":
-            from agents.tissue_benchmark import run_tissue_benchmark
-
-            if args.repeats < 1:
-                parser.error(f"--repeats must be >= 1; got {args.repeats}")
-            run_tissue_benchmark(levels=args.levels, repeats=args.repeats, json_path=args.json)
-            return 0
-        if args.command == "bench" and args.bench == "contact":
-            from agents.contact_benchmark import run_contact_benchmark
-            from tissue.contact import ContactMethod
-            from tissue.integrator import IntegrationMode
-
-            methods = args.methods.split(",") if args.methods else None
-            for name in methods or []:
-                ContactMethod.parse(name)
-            modes = args.modes.split(",")
-            for name in modes:
-                IntegrationMode.parse(name)
-            run_contact_benchmark(args.levels, methods, modes, args.json)
-            return 0
-        if args.command == "bench" and args.bench == "env":
-            from agents.env_benchmark import run_env_benchmark
-            from tissue.contact import ContactMethod
-            from tissue.spec import Profile
-
-            methods = args.methods.split(",") if args.methods else None
-            for name in methods or []:
-                ContactMethod.parse(name)
-            profiles = args.profiles.split(",")
-            for name in profiles:
-                Profile.parse(name)
-            ids = args.ids.split(",") if args.ids else None
-            run_env_benchmark(ids, methods, profiles, args.levels, args.json)
-            return 0
-        if args.command == "bench" and args.bench == "peer":
-            from agents.peer_benchmark import run_peer_benchmark
-
-            if not args.sim_seconds > 0:
-                parser.error(f"--sim-seconds must be > 0; got {args.sim_seconds}")
-            run_peer_benchmark(args.levels, args.json, args.sim_seconds)
-            return 0
+        return _run(parser, args)
     except TissueInputError as error:
         print(f"probegym: error: {error}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"probegym: interrupted; {_kept(args)}", file=sys.stderr)
+        return 130
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    """Give every output option its default under probegym-out/ and check it is writable."""
+    from agents.outputs import check_output_file, check_output_folder, default_output
+
+    if args.command == "study":
+        if args.out is None:
+            args.out = default_output("study", "")
+        check_output_folder(args.out, "--out")
+        return
+    if args.command == "mesh":
+        check_output_file(args.out, "--out")
+        return
+    defaults = {
+        "compress": ("compress", "compress.json"),
+        "hard-cases": ("hard-cases", "hard_cases.json"),
+    }
+    if args.command == "bench":
+        defaults["bench"] = ("bench", f"bench_{args.bench}.json")
+    if args.command in defaults and hasattr(args, "json"):
+        if args.json is None:
+            args.json = default_output(*defaults[args.command])
+        check_output_file(args.json, "--json")
+
+
+def _kept(args: argparse.Namespace) -> str:
+    """What an interrupted command kept, and how to go on."""
+    if args.command == "study":
+        return (
+            f"every cell finished so far is kept in {args.out}/results.jsonl; run the same "
+            "command again to resume"
+        )
+    return "nothing was written"
+
+
+def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """Run the parsed command; returns its exit status."""
+    if args.command == "demo":
+        from agents.tissue_demo import run_demo
+
+        return run_demo(level=args.level, depth_m=args.depth_mm * 1e-3, mode=args.mode)
+    if args.command == "compress" and args.case is not None:
+        from agents.hard_cases import run_catalogue
+        from tissue.phantom import parse_level
+
+        _reject_options_a_case_sets(parser, args)
+
+        level = None if args.mesh is None else parse_level(args.mesh)
+        records = run_catalogue(
+            [args.case], [args.method], [args.mode], level, args.scene, args.json
+        )
+        return 0 if all(record["stable"] for record in records) else 1
+    if args.command == "compress":
+        from agents.compress_command import run_compress_command
+
+        return run_compress_command(args)
+    if args.command == "study":
+        from agents.study.command import run_study_command
+
+        return run_study_command(args)
+    if args.command == "hard-cases":
+        from agents.hard_cases import SMALL_CASES, run_catalogue
+        from tissue.integrator import IntegrationMode
+
+        configs = [IntegrationMode.parse(c).value for c in args.config.split(",")]
+        cases = args.cases.split(",") if args.cases else list(SMALL_CASES)
+        run_catalogue(cases, args.methods.split(","), configs, args.level, args.scene, args.json)
+        return 0
+    if args.command == "mesh":
+        return _mesh(args.level, args.out)
+    if args.command == "bench" and args.bench == "tissue":
+        from agents.tissue_benchmark import run_tissue_benchmark
+
+        if args.repeats < 1:
+            parser.error(f"--repeats must be >= 1; got {args.repeats}")
+        run_tissue_benchmark(levels=args.levels, repeats=args.repeats, json_path=args.json)
+        return 0
+    if args.command == "bench" and args.bench == "contact":
+        from agents.contact_benchmark import run_contact_benchmark
+        from tissue.contact import ContactMethod
+        from tissue.integrator import IntegrationMode
+
+        methods = args.methods.split(",") if args.methods else None
+        for name in methods or []:
+            ContactMethod.parse(name)
+        modes = args.modes.split(",")
+        for name in modes:
+            IntegrationMode.parse(name)
+        run_contact_benchmark(args.levels, methods, modes, args.json)
+        return 0
+    if args.command == "bench" and args.bench == "env":
+        from agents.env_benchmark import run_env_benchmark
+        from tissue.contact import ContactMethod
+        from tissue.spec import Profile
+
+        methods = args.methods.split(",") if args.methods else None
+        for name in methods or []:
+            ContactMethod.parse(name)
+        profiles = args.profiles.split(",")
+        for name in profiles:
+            Profile.parse(name)
+        ids = args.ids.split(",") if args.ids else None
+        run_env_benchmark(ids, methods, profiles, args.levels, args.json)
+        return 0
+    if args.command == "bench" and args.bench == "peer":
+        from agents.peer_benchmark import run_peer_benchmark
+
+        if not args.sim_seconds > 0:
+            parser.error(f"--sim-seconds must be > 0; got {args.sim_seconds}")
+        run_peer_benchmark(args.levels, args.json, args.sim_seconds)
+        return 0
     parser.error("unknown command")
     return 2
 

@@ -7,7 +7,6 @@ tissue settles; one record per step and one per depth are written.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -406,5 +405,7 @@ def plan_scene(poses: NDArray[np.float64]) -> tuple[Waypoint, list[Waypoint]]:
 
 
 def write_json(record: dict[str, Any], path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(record))
+    """The record as strict JSON (non-finite numbers as null)."""
+    from agents.outputs import write_json as write_strict
+
+    write_strict(record, path)

@@ -38,7 +38,6 @@ shared machine: read ratios taken in one run, not absolute numbers across runs.
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 from collections import Counter
@@ -47,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.outputs import write_json
 from agents.tissue_benchmark import print_robust_targets, robust_step_target
 from tissue.contact import make_contact_model
 from tissue.contact.prescribed import PrescribedParams
@@ -210,7 +210,7 @@ def _annotate_targets(records: list[dict[str, Any]]) -> None:
 
 def _write(records: list[dict[str, Any]], json_path: Path) -> None:
     json_path.parent.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(json.dumps(records, indent=2))
+    write_json(records, json_path, indent=2)
 
 
 def _pivot(

@@ -21,7 +21,6 @@ steps/s for prescribed and penalty and 250 for LM at level 1363, 200 for the thr
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import time
@@ -31,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from agents.contact_benchmark import threading_environment
+from agents.outputs import write_json
 
 DEFAULT_IDS = ("probegym/BreastCompress-v0",)
 DEFAULT_METHODS = ("lm", "penalty", "prescribed", "pbd")
@@ -151,4 +151,4 @@ def _write(path: Path, records: list[dict[str, Any]], started: str) -> None:
         "threads": threading_environment(),
         "records": records,
     }
-    path.write_text(json.dumps(payload, indent=1))
+    write_json(payload, path, indent=1)

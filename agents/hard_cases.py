@@ -44,6 +44,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from agents.compress import Waypoint, plan_scene, run_compression, straight_path
+from agents.outputs import write_json
 from tissue.contact import make_contact_model
 from tissue.contact.base import ContactMethod, ContactModel, ContactResult, contact_surface
 from tissue.contact.fe_model import model_surface
@@ -355,7 +356,6 @@ def run_catalogue(
     json_path: Path | None,
 ) -> list[dict[str, Any]]:
     """Run every case x method x configuration; print a table, write JSON; the records."""
-    import json
 
     for name in cases:
         hard_case(name)
@@ -386,6 +386,6 @@ def run_catalogue(
                 )
     if json_path is not None:
         json_path.parent.mkdir(parents=True, exist_ok=True)
-        json_path.write_text(json.dumps(records, indent=1))
+        write_json(records, json_path, indent=1)
         print(f"written: {json_path}")
     return records

@@ -60,7 +60,6 @@ run.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import platform
@@ -74,6 +73,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from agents.contact_benchmark import threading_environment
+from agents.outputs import write_json
 from tissue.contact import make_contact_model
 from tissue.contact.prescribed import PrescribedParams
 from tissue.material import NeoHookean, TissueMaterials
@@ -474,17 +474,6 @@ def _timing(samples: list[float], dt_s: float) -> dict[str, float]:
     }
 
 
-def _finite_or_null(value: Any) -> Any:
-    """The value with every non-finite float replaced by None (strict JSON)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {key: _finite_or_null(item) for key, item in value.items()}
-    if isinstance(value, list):
-        return [_finite_or_null(item) for item in value]
-    return value
-
-
 def _mm(value: float) -> str:
     return f"{value * 1e3:8.3f}" if math.isfinite(value) else f"{'nan':>8}"
 
@@ -599,7 +588,7 @@ def run_peer_benchmark(
         )
         json_path.parent.mkdir(parents=True, exist_ok=True)
         # Keep what is measured so far; NaN (a failed run) is written as null.
-        json_path.write_text(json.dumps(_finite_or_null(records), indent=2))
+        write_json(records, json_path, indent=2)
     print_tables(records)
     print(f"written: {json_path}")
     return records

@@ -8,7 +8,6 @@ shared machine.
 from __future__ import annotations
 
 import gc
-import json
 import platform
 import resource
 import time
@@ -16,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from agents.outputs import write_json
 from tissue.material import TissueMaterials
 from tissue.mesh import top_surface_nodes
 from tissue.phantom import breast_phantom
@@ -191,7 +191,7 @@ def run_tissue_benchmark(
             flush=True,
         )
         json_path.parent.mkdir(parents=True, exist_ok=True)
-        json_path.write_text(json.dumps(records, indent=2))  # keep what is measured so far
+        write_json(records, json_path, indent=2)  # keep what is measured so far
     print_robust_targets(records, "newton_step_ms", "Newton step")
     print(f"written: {json_path}")
     return records

@@ -355,18 +355,12 @@ class Tissue:
         return self._model
 
     def _step_result(self, result: ContactResult) -> TissueStep:
-        status = result.status
-        force, torque = result.force_world, result.torque_world
-        if not (np.all(np.isfinite(force)) and np.all(np.isfinite(torque))):
-            # Never NaN out of the front door: a non-finite wrench is a divergence.
-            status = StepStatus.DIVERGED
-            force, torque = np.zeros(3), np.zeros(3)
         diagnostics = result.diagnostics
         return TissueStep(
-            status=status,
+            status=result.status,
             time_s=result.time_s,
-            force_world_n=force,
-            torque_world_nm=torque,
+            force_world_n=result.force_world,
+            torque_world_nm=result.torque_world,
             contact_points_world_m=result.contact_points,
             contact_forces_world_n=result.contact_forces,
             skin_penetration_m=result.skin_penetration_m,

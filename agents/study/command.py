@@ -21,7 +21,13 @@ from tissue.phantom import PHANTOM_LEVELS
 
 def add_study_arguments(study: argparse.ArgumentParser) -> None:
     """The options of ``probegym study``."""
-    study.add_argument("--methods", default="lm,penalty,prescribed,pbd", help="comma-separated")
+    study.add_argument(
+        "--contact",
+        "--methods",
+        dest="methods",
+        default="lm,penalty,prescribed,pbd",
+        help="comma-separated contact methods",
+    )
     study.add_argument(
         "--levels",
         default=None,
@@ -35,7 +41,13 @@ def add_study_arguments(study: argparse.ArgumentParser) -> None:
     study.add_argument(
         "--depths", default=None, help="D1,D2,... [m] past first contact (default 10,20,25,30 mm)"
     )
-    study.add_argument("--config", default="paper,robust", help="paper | robust | paper,robust")
+    study.add_argument(
+        "--profile",
+        "--config",
+        dest="config",
+        default="paper,robust",
+        help="paper | robust | paper,robust",
+    )
     study.add_argument("--reference-level", default=None, help="level of the converged reference")
     study.add_argument(
         "--reference-kind",
@@ -52,7 +64,9 @@ def add_study_arguments(study: argparse.ArgumentParser) -> None:
     )
     study.add_argument("--workers", type=int, default=1, help="local worker processes")
     study.add_argument("--ray", default=None, help="Ray address (auto, local or host:port)")
-    study.add_argument("--out", type=Path, default=Path("study"), help="output directory")
+    study.add_argument(
+        "--out", type=Path, default=None, help="output folder (default probegym-out/study)"
+    )
     study.add_argument(
         "--quick",
         action="store_true",

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from agents.compress import SETTLED_SPEED_M_S
+from agents.outputs import strict_json
 from agents.study.spec import StudySpec, level_label
 
 METHOD_ORDER = ("lm", "penalty", "prescribed", "pbd")
@@ -381,7 +382,7 @@ def write_report(
                 [(20.0, "tab:blue", "h = 20 ms"), (40.0, "black", "25 fps")])  # fmt: skip
     rows = summary_rows(records, configs)
     plot_accuracy_vs_time(out / "accuracy_vs_time.png", rows)
-    (out / "summary.json").write_text(json.dumps(rows, indent=1))
+    (out / "summary.json").write_text(strict_json(rows, indent=1))
     _write_markdown_and_html(out, spec, records, references, stability, rows)
 
 

@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.outputs import exclusive_folder, readable, strict_json
 from agents.study.cell import run_cell, scene_for
 from agents.study.reference import (
     keepable,
@@ -98,7 +99,7 @@ def _append(path: Path, record: dict[str, Any]) -> None:
             existing.seek(-1, os.SEEK_END)
             cut_short = existing.read(1) != b"\n"
     with path.open("a") as file:
-        file.write(("\n" if cut_short else "") + json.dumps(record) + "\n")
+        file.write(("\n" if cut_short else "") + strict_json(record) + "\n")
         file.flush()
         os.fsync(file.fileno())
 
@@ -133,7 +134,7 @@ def _check_resume(spec: StudySpec, out: Path) -> None:
                 f"({', '.join(f'{k}={previous.get(k)!r}' for k in changed)}); "
                 "give a new --out or the same settings"
             )
-    spec_path.write_text(json.dumps(spec.as_json(), indent=2))
+    spec_path.write_text(strict_json(spec.as_json(), indent=2))
 
 
 def tracked_errors(
@@ -180,7 +181,24 @@ def run_study(
             f"{list(scene.lesion_ids)}"
         )
     measured = read_measured_csv(spec.measured_csv) if spec.measured_csv else None
-    out.mkdir(parents=True, exist_ok=True)
+    # One study writes to a folder at a time: two rewriting results.jsonl at once each kept
+    # only their own records.
+    with exclusive_folder(out, "probegym study"):
+        return _run_in(spec, out, workers, ray_address, progress, log, scene, lesions, measured)
+
+
+def _run_in(
+    spec: StudySpec,
+    out: Path,
+    workers: int,
+    ray_address: str | None,
+    progress: bool,
+    log: Callable[[str], None],
+    scene: StudyScene,
+    lesions: tuple[int, ...],
+    measured: dict[int, dict[int, list[float]]] | None,
+) -> StudyOutcome:
+    """:func:`run_study`'s work, with ``out`` locked."""
     _check_resume(spec, out)
     results_path = out / RESULTS_FILE
     records = read_results(results_path)
@@ -246,7 +264,7 @@ def run_study(
             records.append(result)
             bar.set_postfix_str(f"{result['key']} {result['status']}")
         bar.close()
-        (out / REFERENCES_FILE).write_text(json.dumps(references, indent=1))
+        (out / REFERENCES_FILE).write_text(strict_json(references, indent=1))
         records = _rescore(results_path, records, spec, measured, references, log)
 
     from agents.study.report import write_report
@@ -306,9 +324,10 @@ def _rescore(
     if changed:
         handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
         with os.fdopen(handle, "w") as file:
-            file.writelines(json.dumps(record) + "\n" for record in records)
+            file.writelines(strict_json(record) + "\n" for record in records)
             file.flush()
             os.fsync(file.fileno())
+        readable(Path(temporary))  # mkstemp makes it 0600; the other outputs are 0644
         os.replace(temporary, path)  # a kill leaves the old file or the new, never half
         log(f"errors of {changed} cells scored against the truth now known")
     return records
@@ -351,7 +370,8 @@ def _carry_reference(out: Path, cached: Path, record: dict[str, Any]) -> None:
     carried.parent.mkdir(exist_ok=True)
     handle, temporary = tempfile.mkstemp(dir=carried.parent, suffix=".tmp")
     with os.fdopen(handle, "w") as file:
-        json.dump(record, file)
+        file.write(strict_json(record))
+    readable(Path(temporary))
     os.replace(temporary, carried)
 
 
