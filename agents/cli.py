@@ -228,6 +228,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from tissue import configure_threads
 
         configure_threads()
+        if args.command in ("demo", "compress", "hard-cases", "bench"):
+            from agents.first_use import announce_compilation
+
+            announce_compilation()
         return _run(parser, args)
     except TissueInputError as error:
         print(f"probegym: error: {error}", file=sys.stderr)

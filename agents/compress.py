@@ -19,11 +19,11 @@ from numpy.typing import NDArray
 from tissue import TissueSpec, make_tissue
 from tissue.contact import ContactMethod, ContactModel
 from tissue.contact.base import ContactResult
-from tissue.contact.placement import first_contact_pose
+from tissue.contact.placement import first_contact_pose, ray_surface_hit
 from tissue.contact.prescribed import PrescribedParams
 from tissue.contact.stability import StabilityMonitor
 from tissue.errors import ConfigError, TissueInputError
-from tissue.mesh import TetMesh
+from tissue.mesh import TetMesh, boundary_faces
 from tissue.pbd import PBDConfig
 from tissue.probe import Probe, ProbeShape
 from tissue.status import StepStatus, worst
@@ -35,7 +35,7 @@ SETTLED_SPEED_M_S = 1e-4
 # ... or after this many steps: run_compression's default, enough for the hard cases, whose
 # holds check stability, not where the tissue comes to rest ...
 MAX_SETTLE_STEPS = 50
-#: ... and a hold long enough to settle (5 s at 0.02 s), for ``probegym compress``'s levels
+#: ... and a hold long enough to settle (5 s at 0.02 s), for ``probegym compress``'s depths
 #: and the study. Measured with robust LM on the 4,126-tet level against its own quasi-static
 #: reference: after 50 steps lesion 1 at 30 mm was still 2.16 mm from equilibrium and lesion 5
 #: 1.15 mm (the tissue creeps for seconds under the probe); after 100 / 150 / 200 / 300 steps
@@ -46,12 +46,12 @@ ACCURATE_SETTLE_STEPS = 250
 
 @dataclass(frozen=True)
 class Waypoint:
-    """A probe pose to reach, and whether to settle and record a level there.
+    """A probe pose to reach, and whether to settle and record a depth there.
 
     Attributes:
         position: probe origin [m], (3,).
         quat_wxyz: probe orientation, (4,).
-        depth_m: the depth to record a level at after settling; None: pass through.
+        depth_m: the depth to record after settling there; None: pass through.
         speed_m_s: the probe's speed on the way here [m/s]; None: the run's speed;
             ``math.inf``: in one step (a sudden jump or release).
     """
@@ -103,7 +103,7 @@ class CompressionProgress:
         stops_done: the waypoints passed (held and recorded, where they have a depth).
         motion_done: the motion steps completed (for ``stability_percent``).
         steps: the step records so far.
-        levels: the level records so far.
+        depths: the records of the depths reached so far.
         model_state: the model's :meth:`~tissue.contact.base.ContactModel.saved_state`.
         stop_motion_done: the motion steps taken towards the next waypoint (0 just after a
             recorded depth).
@@ -114,7 +114,7 @@ class CompressionProgress:
     stops_done: int
     motion_done: int
     steps: list[dict[str, Any]]
-    levels: list[dict[str, Any]]
+    depths: list[dict[str, Any]]
     model_state: dict[str, NDArray[np.float64]]
     stop_motion_done: int = 0
     level_status: str = StepStatus.OK.value
@@ -136,7 +136,7 @@ def run_compression(
     """Drive ``model`` through the waypoints; returns the JSON-ready record.
 
     At each waypoint with a depth the probe holds still until no node moves faster than
-    :data:`SETTLED_SPEED_M_S`, or for ``max_settle_steps`` steps, and the level is recorded.
+    :data:`SETTLED_SPEED_M_S`, or for ``max_settle_steps`` steps, and the depth is recorded.
 
     With a ``monitor`` the run stops at the first unstable step (the step is recorded) and
     the record gains ``instability`` ({step, kind, detail}, or None) and
@@ -172,7 +172,7 @@ def run_compression(
                 f"{-float(distance.min()) * 1e3:.2f} mm); start it clear of the surface"
             )
         steps: list[dict[str, Any]] = []
-        levels: list[dict[str, Any]] = []
+        depths: list[dict[str, Any]] = []
         motion_done, first_stop, first_step, first_settle = 0, 0, 1, 0
         position, quat = start.position.copy(), start.quat_wxyz.copy()
         level_status = StepStatus.OK
@@ -189,7 +189,7 @@ def run_compression(
         reached = stops[resume.stops_done - 1] if resume.stops_done else start
         position, quat = reached.position.copy(), reached.quat_wxyz.copy()
         model.load_state(resume.model_state)
-        steps, levels = list(resume.steps), list(resume.levels)
+        steps, depths = list(resume.steps), list(resume.depths)
         motion_done, first_stop = resume.motion_done, resume.stops_done
         first_step = resume.stop_motion_done + 1
         first_settle = resume.settle_done
@@ -216,7 +216,7 @@ def run_compression(
         stops_done: int, into: int, status: StepStatus, settled: int = 0
     ) -> CompressionProgress:
         return CompressionProgress(
-            stops_done, motion_done, list(steps), list(levels), model.saved_state(), into,
+            stops_done, motion_done, list(steps), list(depths), model.saved_state(), into,
             status.value, settled,
         )  # fmt: skip
 
@@ -255,17 +255,17 @@ def run_compression(
         if instability is not None:
             motion_done -= 1  # the depth was reached but never held
             break
-        levels.append(_level_record(result, stop.depth_m, model, level_status))
+        depths.append(_depth_record(result, stop.depth_m, model, level_status))
         if on_progress is not None:
             on_progress(progress_now(index + 1, 0, StepStatus.OK))
         if progress:
             print(
-                f"depth {stop.depth_m * 1e3:6.2f} mm: force {levels[-1]['force_normal_n']:8.4f} N, "
+                f"depth {stop.depth_m * 1e3:6.2f} mm: force {depths[-1]['force_normal_n']:8.4f} N, "
                 f"penetration {result.penetration_max_m * 1e3:6.3f} mm, {level_status.value}",
                 flush=True,
             )
         level_status = StepStatus.OK
-    record: dict[str, Any] = {"steps": steps, "levels": levels}
+    record: dict[str, Any] = {"steps": steps, "depths": depths}
     if monitor is not None:
         record["instability"] = instability
         record["stability_percent"] = 100.0 * max(motion_done, 0) / max(sum(counts), 1)
@@ -301,7 +301,7 @@ def _step_record(result: ContactResult, position: NDArray[np.float64]) -> dict[s
     }
 
 
-def _level_record(
+def _depth_record(
     result: ContactResult, depth: float, model: ContactModel, status: StepStatus
 ) -> dict[str, Any]:
     pressing = model.probe.pressing_direction_world()
@@ -388,12 +388,49 @@ def plan_straight(
         at_xy = tuple((nodes[:, :2].min(axis=0) + nodes[:, :2].max(axis=0)) / 2)  # type: ignore[assignment]
     assert at_xy is not None
     target = np.array([at_xy[0], at_xy[1], nodes[:, 2].mean()])
+    _check_press_line(model.mesh, target, direction, depths_m)
     position, quat = first_contact_pose(model.surface, nodes, model.probe.shape, target, direction)
     return straight_path(position, quat, direction, depths_m)
 
 
+def _check_press_line(
+    mesh: TetMesh,
+    target: NDArray[np.float64],
+    direction: NDArray[np.float64],
+    depths_m: list[float],
+) -> None:
+    """Refuse a press that enters the tissue through its fixed base (pressing the chest wall
+    from behind) or goes deeper than the tissue is thick along the line."""
+    norm = float(np.linalg.norm(direction))
+    if not (np.isfinite(norm) and norm > 0.0):
+        raise ConfigError(f"--direction must be a non-zero vector; got {direction.tolist()}")
+    direction = direction / norm
+    faces = boundary_faces(mesh.tets)
+    fixed = np.zeros(mesh.node_count, dtype=bool)
+    fixed[mesh.fixed_nodes] = True
+    extent = float(np.max(np.ptp(mesh.nodes, axis=0)))
+    start = target - 2.0 * extent * direction
+    entry = ray_surface_hit(mesh.nodes, faces, start, direction)
+    if entry is None:
+        return  # first_contact_pose says the line misses the tissue
+    base = faces[fixed[faces].all(axis=1)]
+    base_entry = ray_surface_hit(mesh.nodes, base, start, direction) if base.size else None
+    if base_entry is not None and float(np.linalg.norm(base_entry - entry)) < 1e-9:
+        raise ConfigError(
+            f"--direction {direction.round(3).tolist()} presses the tissue's fixed base from "
+            "behind; press its free surface (the phantom's top: 0,0,-1)"
+        )
+    exit_point = ray_surface_hit(mesh.nodes, faces, target + 2.0 * extent * direction, -direction)
+    thickness = float(np.linalg.norm(exit_point - entry)) if exit_point is not None else np.inf
+    if depths_m and max(depths_m) >= thickness:
+        raise ConfigError(
+            f"--depths up to {1e3 * max(depths_m):g} mm go through the tissue, which is "
+            f"{1e3 * thickness:.1f} mm thick along this line; give smaller --depths"
+        )
+
+
 def plan_scene(poses: NDArray[np.float64]) -> tuple[Waypoint, list[Waypoint]]:
-    """The published scene's path: Transform0 (at rest) then Transform1..4, each a level."""
+    """The published scene's path: Transform0 (at rest) then Transform1..4, each a depth."""
     start_position, start_quat = Probe.pose_from_matrix(poses[0])
     stops = []
     for transform in poses[1:]:

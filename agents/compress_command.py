@@ -36,10 +36,13 @@ def _load_mesh(args: argparse.Namespace) -> TetMesh:
                 "--fixed-nodes FILE"
             )
         return load_tet_mesh(
-            mesh_arg, fixed_plane=args.fixed_plane, fixed_nodes_file=args.fixed_nodes
+            mesh_arg,
+            fixed_plane=args.fixed_plane,
+            fixed_nodes_file=args.fixed_nodes,
+            scale=1.0 if args.scale is None else args.scale,
         )
-    if args.fixed_plane is not None or args.fixed_nodes is not None:
-        raise ConfigError("--fixed-plane and --fixed-nodes apply to --mesh FILE only")
+    if args.fixed_plane is not None or args.fixed_nodes is not None or args.scale is not None:
+        raise ConfigError("--fixed-plane, --fixed-nodes and --scale apply to --mesh FILE only")
     from tissue.phantom import breast_phantom, parse_level
 
     return breast_phantom(parse_level(mesh_arg))
@@ -57,7 +60,13 @@ def run_compress_command(args: argparse.Namespace) -> int:
     # chosen at first contact, or on the published scene its own set).
     online = args.online
     given_nodes = None
+    if args.lesion is not None and args.scene is None:
+        raise ConfigError(
+            f"--lesion {args.lesion} picks a tumour of the published scene; give --scene DIR "
+            "too (on the built-in phantom, choose the point to press with --at X,Y)"
+        )
     if args.scene is not None:
+        args.lesion = 1 if args.lesion is None else args.lesion
         from tissue.paper_scene import load_paper_scene
 
         scene = load_paper_scene(args.scene)
@@ -98,7 +107,7 @@ def run_compress_command(args: argparse.Namespace) -> int:
         start, stops = plan_straight(model, args.at, direction, depths)
     print(
         f"compress: {mesh.name} ({mesh.tet_count} tets), probe {shape.name}, "
-        f"method {args.method}, mode {args.mode}, {len(stops)} levels"
+        f"method {args.method}, mode {args.mode}, {len(stops)} depths"
     )
     monitor = StabilityMonitor(args.method, mesh.nodes, start.position)
     record = run_compression(
@@ -123,4 +132,6 @@ def run_compress_command(args: argparse.Namespace) -> int:
     }
     write_json(record, args.json)
     print(f"written: {args.json} ({len(record['steps'])} steps)")
-    return 0
+    # Exit status: 0 the compression completed stably, 1 it met an instability (recorded in
+    # the JSON's "instability"), 2 bad input.
+    return 0 if record.get("instability") is None else 1

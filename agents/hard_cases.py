@@ -256,7 +256,7 @@ def run_hard_case(
         ``case``, ``method``, ``config``, ``tets``, ``stable`` (every check passed),
         ``stability_percent``, ``instability`` (or None), ``energy_ok``, ``energy_excess_j``,
         ``penetration_max_m``, ``median_step_ms``, ``max_step_ms``, ``steps``,
-        ``subdivisions`` (robust steps that were split), ``levels`` (per recorded depth).
+        ``subdivisions`` (robust steps that were split), ``depths`` (per recorded depth).
     """
     case = hard_case(name)
     if level is not None:
@@ -302,7 +302,7 @@ def run_hard_case(
         "max_step_ms": float(np.max(times)),
         "steps": len(times),
         "subdivisions": energy.subdivided_steps,
-        "levels": run["levels"],
+        "depths": run["depths"],
         "wall_s": time.perf_counter() - started,
     }
 

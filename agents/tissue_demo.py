@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from tissue.errors import ConfigError
 from tissue.material import TissueMaterials
 from tissue.mesh import top_surface_nodes
 from tissue.phantom import breast_phantom, describe_mesh
@@ -14,8 +17,17 @@ PROBE_FACE_HALF_SIZE_M = (0.0265, 0.0065)
 PROBE_SPEED_M_S = 0.01
 
 
+#: The deepest demo press [m]: the study's deepest, past which the probe nears the base.
+DEMO_MAX_DEPTH_M = 0.03
+
+
 def run_demo(level: int = 4126, depth_m: float = 0.01, mode: str = "robust") -> int:
     """Compress the phantom's apex by ``depth_m`` [m] at 0.01 m/s and print what happened."""
+    if not (math.isfinite(depth_m) and 0.0 < depth_m <= DEMO_MAX_DEPTH_M):
+        raise ConfigError(
+            f"--depth-mm must be a depth in (0, {DEMO_MAX_DEPTH_M * 1e3:g}] mm; got "
+            f"{depth_m * 1e3:g} (the phantom is 80 mm tall)"
+        )
     mesh = breast_phantom(level)
     print(describe_mesh(mesh))
     sim = TissueSimulator(mesh, TissueMaterials(), SimulationConfig(mode=mode))

@@ -624,7 +624,7 @@ def test_each_method_runs_the_published_scene_tumour_1_level_1(
     )
     start, stops = plan_scene(scene.probe_poses[1])
     record = run_compression(model, start, stops[:1], 0.01)
-    level = record["levels"][0]
+    level = record["depths"][0]
     assert level["status"] in ("ok", "not_converged")
     assert level["force_normal_n"] > 0.05
     assert all(np.isfinite(step["force"]).all() for step in record["steps"])
@@ -681,7 +681,7 @@ def test_compress_command_holds_at_most_settle_steps(tmp_path) -> None:
     record = json.loads(out.read_text())
     # 1 mm of clearance and 4 mm of travel at 0.2 mm per step, then 3 held steps (the default
     # hold needs 8 here before no node moves faster than 0.1 mm/s).
-    assert len(record["levels"]) == 1
+    assert len(record["depths"]) == 1
     assert len(record["steps"]) == 25 + 3
     assert record["config"]["settle_steps"] == 3
 
@@ -711,7 +711,7 @@ def test_compress_prescribed_node_set_follows_the_mode_unless_told(
     record = json.loads(out.read_text())
     assert record["config"]["online"] is online
     assert record["config"]["sliding"] is sliding
-    assert record["levels"][0]["force_normal_n"] > 0.0
+    assert record["depths"][0]["force_normal_n"] > 0.0
 
 
 def test_compress_online_with_another_method_is_named(

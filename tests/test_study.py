@@ -80,9 +80,18 @@ def test_tiny_study_writes_every_output_consistently(tiny_study) -> None:
             if record["method"] == "penalty" and record["level"] == TINY.reference_level:
                 assert error < 0.1 * moved
     stability = (out / "stability.md").read_text()
-    assert "paper PrescrDispl mean" in stability and "robust Penalty mean" in stability
-    rows = [line for line in stability.splitlines() if line.startswith("| 6") or "1,363" in line]
-    assert len(rows) == 2
+    assert "**paper profile**" in stability and "**robust profile**" in stability
+    header = "| level (tets) | Penalty | PrescrDispl | 2020 Penalty | 2020 PrescrDispl |"
+    assert header in stability
+    rows = [
+        line
+        for line in stability.splitlines()
+        if line.startswith("| level ") and "(tets)" not in line
+    ]
+    assert len(rows) == 4 and "| level 623 (571 tets) |" in rows[0]
+    # Beside the paper profile, Tagliabue et al.'s Table 1 at the same levels.
+    assert rows[0].endswith("| 100 (100, 100-100) | 100 (100, 100-100) |")
+    assert rows[1].endswith("| 100 (100, 90-100) | 100 (100, 100-100) |")
     summary = json.loads((out / "summary.json").read_text())
     assert len(summary) == 2 * 2 * 2  # configs x methods x levels
     report = (out / "report.md").read_text()
@@ -317,7 +326,23 @@ def test_stability_table_marks_cells_with_fewer_lesions() -> None:
 
     records = [record("lm", 1, 100.0), record("lm", 2, 50.0), record("pbd", 1, 80.0)]
     row = stability_table(records, ["robust"]).splitlines()[-1]
-    assert row == "| 623 | 571 | 75 | 75 | 50-100 | 80 | 80 | 80-80 (n=1) |"
+    assert row == "| level 623 (571 tets) | 75 (75, 50-100) | 80 (80, 80-80, n=1) |"
+
+
+def test_errors_compare_profiles_on_the_same_depths() -> None:
+    """A cell that broke off is not scored on the shallow depths it reached alone: the
+    other profile's cells of that lesion and level are scored on the same depths."""
+
+    def record(config: str, method: str, errors: list[float]) -> dict:
+        return {"config": config, "method": method, "level": 623, "lesion": 1,
+                "errors_m": errors}  # fmt: skip
+
+    records = [
+        record("paper", "lm", [1.0]),  # broke off after the first depth
+        record("robust", "lm", [1.5, 2.5, 3.5]),
+    ]
+    errors = valid_errors(records, ["paper", "robust"])
+    assert errors == {"paper": {("lm", 623): [1.0]}, "robust": {("lm", 623): [1.5]}}
 
 
 def test_pareto_front_marks_undominated_points() -> None:

@@ -44,6 +44,12 @@ class MaterialLaw(Choice):
         return MaterialError
 
 
+# Moduli beyond these [Pa] are not a tissue (and their energies and forces overflow double
+# precision on a mesh): steel's E is 2e11 Pa.
+_STIFFEST_PA = 1e12
+_LARGEST_LAMBDA_PA = 1e15
+
+
 @dataclass(frozen=True)
 class NeoHookean:
     """Isotropic compressible neo-Hookean parameters of one region.
@@ -68,6 +74,18 @@ class NeoHookean:
             raise MaterialError(
                 f"Poisson's ratio must lie in (-1, 0.5); got {self.poisson!r} "
                 "(near-incompressible tissue: 0.45 to 0.499)"
+            )
+        if self.young_pa > _STIFFEST_PA:
+            raise MaterialError(
+                f"Young's modulus {self.young_pa:g} Pa is stiffer than any solid (steel: 2e11 "
+                f"Pa; the limit here is {_STIFFEST_PA:g}); give pascals (tissue: about 3e3)"
+            )
+        lame = self.lambda_pa
+        if not (np.isfinite(lame) and np.isfinite(self.mu_pa)) or lame > _LARGEST_LAMBDA_PA:
+            raise MaterialError(
+                f"E = {self.young_pa:g} Pa with nu = {self.poisson!r} gives a first Lame "
+                f"parameter of {lame:g} Pa, beyond {_LARGEST_LAMBDA_PA:g}: forces would overflow; "
+                "lower nu (0.49 models near-incompressible tissue) or E"
             )
         if not np.isfinite(self.density_kg_m3) or self.density_kg_m3 <= 0:
             raise MaterialError(

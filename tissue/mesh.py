@@ -238,7 +238,8 @@ def _check_mesh(mesh: TetMesh) -> None:
         raise MeshError(
             f"mesh '{mesh.name}' spans {extent:g} units, but lengths are in metres and tissue "
             f"phantoms are below {_LARGEST_PLAUSIBLE_EXTENT_M} m; the file is probably in "
-            f"millimetres: scale it by 0.001 (loaders take scale=0.001)"
+            f"millimetres: scale it by 0.001 (probegym compress --scale 0.001, "
+            f"TissueSpec(mesh_scale=0.001), load_tet_mesh(scale=0.001))"
         )
     volumes = signed_tet_volumes(nodes, tets)
     mean_volume = float(np.mean(np.abs(volumes)))

@@ -74,7 +74,14 @@ def nodes_on_plane(
         value = float(where)
     if tolerance is None:
         tolerance = _PLANE_TOLERANCE_FRACTION * float(np.max(np.ptp(nodes, axis=0)))
-    return np.flatnonzero(np.abs(coordinate - value) <= tolerance).astype(np.int64)
+    found = np.flatnonzero(np.abs(coordinate - value) <= tolerance).astype(np.int64)
+    if found.size == 0:
+        low, high = float(coordinate.min()), float(coordinate.max())
+        raise ConfigError(
+            f"fixed_plane={spec!r} touches no node (the mesh spans {low:g} to {high:g} m along "
+            f"that axis); use 'min' or 'max', or a value on the mesh's base"
+        )
+    return found
 
 
 def read_index_file(path: str | Path, node_count: int) -> NDArray[np.int64]:

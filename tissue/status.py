@@ -11,8 +11,9 @@ class StepStatus(str, Enum):
     ``OK`` and ``NOT_CONVERGED`` commit a finite state; ``INVERTED`` commits a finite state in
     which some tet has det F <= 0; ``TUNNELLED`` commits a finite state in which the probe
     has passed through the tissue (its face behind the tissue's surface, the tissue not
-    pushing it back; see :mod:`tissue.contact.tunnelling`); ``DIVERGED`` and ``SOLVER_FAILED`` keep the state from
-    before the step (nothing non-finite is ever stored).
+    pushing it back; see :mod:`tissue.contact.tunnelling`); ``DIVERGED`` and
+    ``SOLVER_FAILED`` keep the state from before the step (nothing non-finite is ever
+    stored).
     """
 
     OK = "ok"

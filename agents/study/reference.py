@@ -177,7 +177,7 @@ def _save_progress(
         "level_status": progress.level_status,
         "motion_done": progress.motion_done,
         "steps": progress.steps,
-        "levels": progress.levels,
+        "depths": progress.depths,
         "elapsed_s": elapsed_s,
         "resumed_after": resumed,
     }
@@ -201,8 +201,10 @@ def _load_progress(path: Path) -> tuple[CompressionProgress, float, list[int]] |
                 for name in saved.files
                 if name.startswith("state_")
             }
+        # Saved before depths were called depths: their key was "levels".
+        depths = record["depths"] if "depths" in record else record["levels"]
         progress = CompressionProgress(
-            record["stops_done"], record["motion_done"], record["steps"], record["levels"], state,
+            record["stops_done"], record["motion_done"], record["steps"], depths, state,
             record["stop_motion_done"], record["level_status"], record.get("settle_done", 0),
         )  # fmt: skip
         return progress, float(record["elapsed_s"]), list(record["resumed_after"])
@@ -285,9 +287,9 @@ def compute_reference(
         "level_label": level_label(spec.reference_level),
         "tets": mesh.tet_count,
         "depths_m": [stop.depth_m for stop in stops],
-        "tracked_m": [level["landmarks"][tracked] for level in run["levels"]],
-        "force_normal_n": [level["force_normal_n"] for level in run["levels"]],
-        "level_status": [level["status"] for level in run["levels"]],
+        "tracked_m": [depth["landmarks"][tracked] for depth in run["depths"]],
+        "force_normal_n": [depth["force_normal_n"] for depth in run["depths"]],
+        "level_status": [depth["status"] for depth in run["depths"]],
         "instability": run["instability"],
         "wall_s": before_s + time.perf_counter() - started,
         "resumed_after": resumed,

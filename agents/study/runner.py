@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.first_use import compile_kernels_once
 from agents.outputs import exclusive_folder, readable, strict_json
 from agents.study.cell import run_cell, scene_for
 from agents.study.reference import (
@@ -62,6 +63,10 @@ _PHYSICS_KEYS = (
     "reference_level",
     "measured_csv",
 )
+
+
+#: A reference's work in cells of its level (the progress bar's weight).
+REFERENCE_WEIGHT = 3
 
 
 @dataclass
@@ -215,6 +220,11 @@ def _run_in(
         log(f"mesh {level_label(level)}: {mesh.tet_count} tets, {mesh.node_count} nodes")
     if coarsest is not None and scene.directory is None:
         _check_depths_reachable(spec, scene, lesions, coarsest)
+    if cells:
+        # Here, before the workers and the progress bar's clock: its estimate of the time left
+        # is then the cells', not the compiler's (workers load the kernels from the cache).
+        compile_kernels_once(log)
+    tets = {level: scene.mesh(level).tet_count for level in needed}
 
     with _executor(workers, ray_address) as submit:
         references, waiting = _cached_references(spec, scene, lesions, measured, log, out)
@@ -238,12 +248,23 @@ def _run_in(
             + (f" ({resuming} resuming from saved progress)" if resuming else "")
         )
         computed = 0
-        bar = _progress_bar(len(tasks), progress)
+        # The bar counts work, not tasks: a cell's cost grows with its mesh (a 4,141-tet
+        # cell takes several times a 571-tet one), so counting cells made the first, coarse
+        # cells promise an end far too soon. Work: the level's tets, and a reference
+        # (Newton to 1e-5, the same path) as a few cells of its level.
+        weights = [
+            tets[item.level] if kind == "cell" else REFERENCE_WEIGHT * tets[spec.reference_level]
+            for kind, item in tasks
+        ]
+        weight_of = dict(zip(tasks, weights, strict=True))
+        bar = _progress_bar(sum(weights), progress)
+        done_cells = 0
         window = 1 if workers == 1 and ray_address is None else 2 * workers
         failed: list[str] = []
         failed_cells = 0
         for (kind, item), result, error in _run_all(tasks, spec, submit, window):
-            bar.update(1)
+            bar.update(weight_of[(kind, item)])
+            done_cells += 1
             if error is not None:
                 name = f"cell {item.key}" if kind == "cell" else f"reference lesion {item}"
                 failed.append(f"{name}: {type(error).__name__}: {error}")
@@ -257,12 +278,12 @@ def _run_in(
                 if keepable(record):
                     _carry_reference(out, reference_path(spec, scene, item), record)
                 _log_reference(spec, item, record, fresh, log)
-                bar.set_postfix_str(f"reference lesion {item}")
+                bar.set_postfix_str(f"{done_cells}/{len(tasks)}: reference lesion {item}")
                 continue
             result.update(_scoring(result, _truth(spec, result["lesion"], measured, references)))
             _append(results_path, result)
             records.append(result)
-            bar.set_postfix_str(f"{result['key']} {result['status']}")
+            bar.set_postfix_str(f"{done_cells}/{len(tasks)}: {result['key']} {result['status']}")
         bar.close()
         (out / REFERENCES_FILE).write_text(strict_json(references, indent=1))
         records = _rescore(results_path, records, spec, measured, references, log)
@@ -461,12 +482,31 @@ class _executor:  # noqa: N801 - used as a context manager like a function
         )
         return self._pool.submit
 
-    def __exit__(self, *exc: object) -> None:
-        if self._pool is not None:
+    def __exit__(self, kind: type[BaseException] | None, *rest: object) -> None:
+        if self._pool is None:
+            return
+        if kind is None:
             self._pool.shutdown(wait=True, cancel_futures=True)
+            return
+        # Interrupted (Ctrl-C) or failed: what is finished is on disk; do not wait for the
+        # cells in hand (minutes on fine levels). The workers ignore SIGINT (their tracebacks
+        # would bury the one line saying what was kept): they are ended here.
+        processes = list((getattr(self._pool, "_processes", None) or {}).values())
+        for process in processes:
+            process.terminate()
+        for process in processes:
+            process.join(timeout=10)
+        self._pool.shutdown(wait=True, cancel_futures=True)  # prompt: its workers are gone
 
 
 def _progress_bar(total: int, enabled: bool) -> Any:
+    """A bar over ``total`` units of work, showing the share done and the time left."""
     from tqdm import tqdm
 
-    return tqdm(total=total, disable=not enabled, unit="cell", desc="cells", dynamic_ncols=True)
+    return tqdm(
+        total=total,
+        disable=not enabled,
+        desc="study",
+        bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}<{remaining}, {postfix}",
+        dynamic_ncols=True,
+    )

@@ -26,6 +26,9 @@ def init_worker(workers: int, parent_pid: int | None = None) -> None:
     from tissue import configure_threads
 
     configure_threads(threads=max(1, (os.cpu_count() or 1) // max(1, workers)))
+    # Ctrl-C reaches the whole process group: the study's process says what was kept and
+    # ends the workers; each worker printing its own KeyboardInterrupt would bury that.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     _exit_with_parent(parent_pid)
 
 
