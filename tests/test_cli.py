@@ -228,3 +228,78 @@ def test_ctrl_c_on_a_study_says_what_was_kept_in_one_line(tmp_path) -> None:
     assert "run the same command again to resume" in lines[0]
     kept = [json.loads(line) for line in results.read_text().splitlines()]
     assert kept and all("key" in record for record in kept)
+
+
+def test_demo_mesh_and_hard_cases_run(tmp_path, capsys) -> None:
+    """Each command once, small: what a new user types first."""
+    assert main(["demo", "--level", "623", "--depth-mm", "2"]) == 0
+    assert "status" in capsys.readouterr().out
+    mesh_path = tmp_path / "phantom.vtu"
+    assert main(["mesh", "--level", "623", "--out", str(mesh_path)]) == 0
+    import meshio
+
+    assert meshio.read(mesh_path).cells_dict["tetra"].shape == (571, 4)
+    out = tmp_path / "hard.json"
+    argv = ["hard-cases", "--cases", "edge_contact", "--contact", "lm", "--profile", "robust",
+            "--level", "623", "--json", str(out)]  # fmt: skip
+    assert main(argv) == 0
+    (record,) = json.loads(out.read_text())
+    assert record["case"] == "edge_contact" and record["stable"] and record["energy_ok"]
+
+
+def _tiny_study(out: Path, *extra: str) -> list[str]:
+    return ["study", "--levels", "623", "--lesions", "1", "--contact", "lm,penalty",
+            "--profile", "robust", "--reference-level", "623", "--depths", "0.004",
+            "--settle-steps", "5", "--no-progress", "--out", str(out), *extra]  # fmt: skip
+
+
+def test_a_study_with_two_workers_records_every_cell(tmp_path, capsys) -> None:
+    """The README's main command's way of running, small: two worker processes."""
+    out = tmp_path / "study"
+    assert main(_tiny_study(out, "--workers", "2")) == 0
+    records = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
+    assert sorted(r["key"] for r in records) == ["robust/lm/623/1", "robust/penalty/623/1"]
+    assert all(r["status"] == "ok" and r["load_average"] >= 0 for r in records)
+    assert (out / "results.jsonl").stat().st_mode & 0o777 == 0o666 & ~_umask()
+    assert "failed" not in capsys.readouterr().err
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def test_a_study_scored_against_measured_positions(tmp_path) -> None:
+    """--measured: the truth from a CSV (lesion, depth_index, x, y, z), no reference run;
+    the errors are the distances to those points."""
+    out = tmp_path / "study"
+    csv = tmp_path / "measured.csv"
+    csv.write_text("lesion,depth_index,x_m,y_m,z_m\n1,1,0.0,0.0,0.05\n")
+    assert main(_tiny_study(out, "--measured", str(csv))) == 0
+    records = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
+    for record in records:
+        assert record["truth"] == "measured"
+        expected = np.linalg.norm(np.subtract(record["tracked_m"][0], [0.0, 0.0, 0.05]))
+        assert record["errors_m"][0] == pytest.approx(expected, rel=1e-9)
+    assert json.loads((out / "references.json").read_text()) == {}  # no reference was run
+
+
+@pytest.mark.slow
+def test_the_readmes_main_command(tmp_path) -> None:
+    """``probegym study --quick --workers 2``, end to end, in a fresh output folder: every
+    cell recorded, the robust profile completing all of them, every output written."""
+    result = subprocess.run(
+        [sys.executable, "-m", "agents.cli", "study", "--quick", "--workers", "2",
+         "--no-progress"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=1800,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-3000:]
+    out = tmp_path / "probegym-out" / "study"
+    records = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
+    assert len(records) == 96
+    robust = [r for r in records if r["config"] == "robust"]
+    assert robust and all(r["stability_percent"] == 100.0 for r in robust)
+    for name in ("stability.md", "errors.png", "times.png", "accuracy_vs_time.png",
+                 "report.md", "report.html", "summary.json"):  # fmt: skip
+        assert (out / name).stat().st_size > 0

@@ -913,3 +913,59 @@ def test_gap_rows_and_their_transpose_product_match_scipy(block) -> None:
     np.testing.assert_array_equal(
         cache._projected_columns(contacts.points, constrained), expected.T.toarray()
     )
+
+
+def test_penalty_springs_follow_eq_6_and_the_default_stiffness(block) -> None:
+    """Eq. (6) directly: a flat face 0.1 mm into the block's top holds each of the 3 x 3 top
+    nodes under it with k_s delta, k_s the documented default 50 x E x the surface's mean
+    edge; the energy is sum k_s delta^2 / 2 and the stiffness k_s n n^T per node."""
+    from tissue.contact.base import contact_surface
+
+    shape = BoxProbe((0.012, 0.004, 0.012))
+    model = _model("penalty", block, shape, mode="paper")
+    surface = contact_surface(block)
+    corners = surface.positions(block.nodes)[surface.triangles]
+    mean_edge = float(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).mean())
+    stiffness = 50.0 * E * mean_edge
+    assert model.stiffness_n_per_m == pytest.approx(stiffness, rel=1e-12)
+    depth = 1e-4
+    placed = Probe.looking_along(
+        shape, np.array([0.0, 0.0, SIZE / 2 - depth]), np.array([0.0, 0.0, -1.0])
+    )
+    model.probe.set_pose(placed.position_world, placed.quat_wxyz)
+    evaluation = model.term.evaluate(block.nodes)
+    pressed = np.flatnonzero(np.linalg.norm(evaluation.forces, axis=1) > 0)
+    assert pressed.size == 9
+    np.testing.assert_allclose(
+        evaluation.forces[pressed],
+        np.tile([0.0, 0.0, -stiffness * depth], (9, 1)),
+        rtol=1e-9,
+        atol=1e-12 * stiffness * depth,
+    )
+    assert evaluation.energy_j == pytest.approx(9 * 0.5 * stiffness * depth**2, rel=1e-9)
+    assert evaluation.stiffness_values.sum() == pytest.approx(9 * stiffness, rel=1e-9)
+
+
+def test_online_prescribed_nodes_let_go_when_they_would_pull(block) -> None:
+    """Withdrawn slowly (0.1 mm a step, under the at-once release of 0.5 mm), nodes whose
+    reaction turns tensile leave the set: the tissue does not hold on to the probe, and
+    once the probe is clear no node is held."""
+    shape = BoxProbe((0.012, 0.004, 0.012))
+    model = _model("prescribed", block, shape, quasi=False, params=PrescribedParams(online=True))
+    start = np.array([0.0, 0.0, SIZE / 2 + 1e-4])
+    probe = Probe.looking_along(shape, start, np.array([0.0, 0.0, -1.0]))
+    model.place_probe(start, probe.quat_wxyz)
+    path = [start - [0.0, 0.0, 1e-4 * k] for k in range(1, 31)]  # 3 mm in
+    path += [path[-1] + [0.0, 0.0, 1e-4 * k] for k in range(1, 61)]  # 6 mm back out
+    released, forces = 0, []
+    for position in path:
+        held_before = model.contact_nodes.size
+        result = model.step(position, probe.quat_wxyz)
+        released = max(released, held_before - model.contact_nodes.size)
+        assert result.status is StepStatus.OK
+        forces.append(result.force_world[2])
+    # A node leaves one step after its reaction turns tensile: the pull lasts a step and
+    # stays a small fraction of the press (held on, the tissue would drag the probe back).
+    assert min(forces) >= -0.02 * max(forces), (min(forces), max(forces))
+    assert released > 0 and model.contact_nodes.size == 0
+    assert abs(forces[-1]) < 1e-9

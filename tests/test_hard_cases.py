@@ -155,3 +155,35 @@ def test_finest_levels(case: str, method: str) -> None:
     configuration (LM and penalty act on the volume's boundary there; fine_105k inverted a
     tet at 19 mm with the ~500-point collision surface)."""
     _check(run_hard_case(case, method, "robust"))
+
+
+def test_the_energy_check_fires_when_the_tissue_holds_more_than_the_probe_gave() -> None:
+    """The catalogue's energy check (elastic + kinetic <= the probe's work) passes a real
+    press and fires on the same press with the probe's force hidden from it (no work done,
+    energy stored)."""
+    from dataclasses import replace
+
+    from agents.hard_cases import _EnergyCheck
+    from tissue.contact.placement import first_contact_pose
+
+    mesh = breast_phantom(623)
+    model = make_contact_model(
+        "lm", mesh, parse_probe_spec("face"), config=SimulationConfig(mode="robust")
+    )
+    position, quat = first_contact_pose(
+        model.surface,
+        mesh.nodes,
+        model.probe.shape,
+        np.array([0.0, 0.0, 0.04]),
+        np.array([0.0, 0.0, -1.0]),
+    )
+    honest = _EnergyCheck(model, position, quat)
+    blind = _EnergyCheck(model, position, quat)
+    model.place_probe(position, quat)
+    for k in range(1, 21):
+        pose = position - [0.0, 0.0, 2e-4 * k]
+        result = model.step(pose, quat)
+        honest(result, pose)
+        blind(replace(result, force_world=np.zeros(3), torque_world=np.zeros(3)), pose)
+    assert honest.ok and honest.work_j > 0
+    assert not blind.ok and blind.worst_excess_j > 0.5 * honest.work_j

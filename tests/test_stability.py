@@ -82,3 +82,46 @@ def test_limits_reject_nonsense() -> None:
         StabilityLimits(step_timeout_s=0.0)
     with pytest.raises(ConfigError, match="penetration_m"):
         StabilityLimits(penetration_m=-1.0)
+
+
+def _compression_failing_at(call: int, depths: list[float], settle: int) -> dict:
+    """A penalty press of the 623-tet phantom whose ``call``-th step reports a divergence:
+    run_compression's record, with the stability monitor on."""
+    from dataclasses import replace
+
+    from agents.compress import build_model, plan_straight, run_compression
+    from tissue.phantom import breast_phantom
+    from tissue.probe import linear_probe
+
+    mesh = breast_phantom(623)
+    model = build_model(mesh, linear_probe(), "penalty", "robust", None, None, None)
+    start, stops = plan_straight(model, None, np.array([0.0, 0.0, -1.0]), depths)
+    real = model.step
+    calls = {"n": 0}
+
+    def step(position, quat):
+        calls["n"] += 1
+        result = real(position, quat)
+        return replace(result, status=StepStatus.DIVERGED) if calls["n"] == call else result
+
+    model.step = step  # type: ignore[method-assign]
+    monitor = StabilityMonitor("penalty", mesh.nodes, start.position)
+    return run_compression(model, start, stops, 0.01, monitor=monitor, max_settle_steps=settle)
+
+
+def test_the_stability_metric_counts_the_motion_steps_before_the_failure() -> None:
+    """The paper's metric by hand: 0.2 mm steps from 1 mm clear of the skin to 2 mm deep
+    (15 steps), then to 4 mm (10 more); failing on the 7th step leaves 6 of the 25
+    completed: the failed step is not one of them."""
+    record = _compression_failing_at(7, [0.002, 0.004], settle=3)
+    assert record["instability"]["step"] == 6
+    total = 15 + 10  # 3 mm from 1 mm clear to 2 mm deep, then 2 mm more
+    assert record["stability_percent"] == pytest.approx(100.0 * 6 / total)
+
+
+def test_a_failure_while_settling_counts_as_failing_on_that_depths_last_motion_step() -> None:
+    """Reaching 2 mm takes 15 motion steps (from 1 mm clear); failing on the 2nd settling
+    step there counts as failing on the 15th motion step: 14 completed of 25."""
+    record = _compression_failing_at(17, [0.002, 0.004], settle=5)
+    assert record["instability"]["step"] == 16
+    assert record["stability_percent"] == pytest.approx(100.0 * 14 / 25)

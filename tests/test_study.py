@@ -254,6 +254,7 @@ def test_study_refuses_different_physics_in_the_same_directory(tiny_study) -> No
         (["--depths", "0.02,0.01"], "must increase"),
         (["--depths", "20,30"], "metres"),
         (["--config", "fast"], "unknown configuration 'fast'"),
+        (["--profile", "fast"], "unknown configuration 'fast'"),
         (["--reference-kind", "static"], "unknown reference kind 'static'; choose one of"),
         (["--lesions", "11"], "not in the synthetic scene"),
         (["--workers", "0"], "--workers"),
@@ -274,15 +275,35 @@ def test_study_refuses_different_physics_in_the_same_directory(tiny_study) -> No
     ],
 )
 def test_bad_arguments_fail_before_any_work(
-    tmp_path: Path, arguments: list[str], message: str, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path,
+    arguments: list[str],
+    message: str,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
+    """Refused before any mesh is made (the depths' check needs the coarsest, and only it)
+    and before any cell runs."""
     from agents.cli import main
+    from agents.study import scenes
 
+    meshed: list[int] = []
+    real_mesh = scenes.StudyScene.mesh
+
+    def counted(self, level):
+        meshed.append(level)
+        return real_mesh(self, level)
+
+    def no_cells(*args, **kwargs):
+        raise AssertionError("a cell ran although the arguments were bad")
+
+    monkeypatch.setattr(scenes.StudyScene, "mesh", counted)
+    monkeypatch.setattr("agents.study.runner.run_cell", no_cells)
     out = tmp_path / "never"
     code = main(["study", "--out", str(out), "--no-progress", *arguments])
     assert code == 2
     assert message in capsys.readouterr().err
     assert not (out / RESULTS_FILE).exists()
+    assert meshed == ([623] if "drive the probe into the fixed base" in message else [])
 
 
 def test_default_lesions_leave_tissue_under_the_deepest_pose() -> None:

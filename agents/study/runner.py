@@ -212,14 +212,13 @@ def _run_in(
 
     # Meshes are generated (or read from the cache) here, once, before workers start.
     needed = sorted({cell.level for cell in cells} | ({spec.reference_level} if cells else set()))
-    coarsest: TetMesh | None = None
-    for level in needed:  # coarse first
+    for index, level in enumerate(needed):  # coarse first
         mesh = scene.mesh(level)
-        if coarsest is None:
-            coarsest = mesh
         log(f"mesh {level_label(level)}: {mesh.tet_count} tets, {mesh.node_count} nodes")
-    if coarsest is not None and scene.directory is None:
-        _check_depths_reachable(spec, scene, lesions, coarsest)
+        if index == 0 and scene.directory is None:
+            # On the coarsest mesh, before the others are made: depths that drive the probe
+            # into the base are refused before any more work.
+            _check_depths_reachable(spec, scene, lesions, mesh)
     if cells:
         # Here, before the workers and the progress bar's clock: its estimate of the time left
         # is then the cells', not the compiler's (workers load the kernels from the cache).
