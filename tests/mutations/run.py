@@ -178,15 +178,16 @@ def run(mutation: Mutation, timeout_s: float) -> dict[str, object]:
              "-m", "slow or not slow", *mutation.tests],
             cwd=ROOT, capture_output=True, text=True, timeout=timeout_s, check=False,
         )  # fmt: skip
-        outcome = (
-            "killed"
-            if result.returncode == 1
-            else (
-                "survived" if result.returncode == 0 else f"error (pytest exit {result.returncode})"
-            )
-        )
+        if result.returncode == 1:
+            outcome = "killed"
+        elif result.returncode == 0:
+            outcome = "survived"
+        else:
+            outcome = f"error (pytest exit {result.returncode})"
+        failed = [line for line in result.stdout.splitlines() if line.startswith("FAILED ")]
+        caught_by = failed[0].removeprefix("FAILED ").split(" - ")[0] if failed else ""
     except subprocess.TimeoutExpired:
-        outcome = "killed (timed out)"
+        outcome, caught_by = "killed (timed out)", ""
     finally:
         source.write_text(original)
     return {
@@ -194,6 +195,7 @@ def run(mutation: Mutation, timeout_s: float) -> dict[str, object]:
         "file": mutation.path,
         "tests": " ".join(mutation.tests),
         "outcome": outcome,
+        "caught_by": caught_by,
         "seconds": round(time.perf_counter() - started, 1),
     }
 
@@ -210,11 +212,14 @@ def main() -> int:
         print(f"uncommitted changes in {', '.join(dirty)}: commit or stash them first")
         return 2
     rows = []
-    print("| mutation | file | outcome | s |\n|---|---|---|---|")
+    print("| mutation | file | outcome | caught by | s |\n|---|---|---|---|---|")
     for mutation in chosen:
         row = run(mutation, args.timeout)
         rows.append(row)
-        cells = (row["name"], row.get("file", ""), row["outcome"], row.get("seconds", ""))
+        cells = (
+            row["name"], row.get("file", ""), row["outcome"], row.get("caught_by", ""),
+            row.get("seconds", ""),
+        )  # fmt: skip
         print("| " + " | ".join(str(cell) for cell in cells) + " |", flush=True)
     survived = [row for row in rows if row["outcome"] != "killed"]
     print(f"\n{len(rows) - len(survived)} of {len(rows)} killed")
