@@ -393,3 +393,26 @@ def test_a_random_policy_rarely_succeeds() -> None:
                 break
         successes += bool(info["is_success"])
     assert successes < 0.05 * 40
+
+
+@pytest.mark.parametrize("contact", ["lm", "penalty"])
+def test_the_linearised_wrench_predicts_the_next_tissue_step(contact: str) -> None:
+    """What the substeps feel, w0 - K (q - q0), is closer to the next tissue step's force
+    than holding w0 would be, pressing at 1 mm a step (a wrong K or sign is worse)."""
+    env = _make(contact)
+    coupling = env.unwrapped.coupling
+    env.reset(seed=2)
+    errors = {"linearised": [], "held": []}
+    real = coupling.after_substeps
+
+    def compared():
+        predicted, held = coupling.wrench_now().force, coupling._w0[:3].copy()
+        step = real()
+        errors["linearised"].append(np.linalg.norm(predicted - step.force_world_n))
+        errors["held"].append(np.linalg.norm(held - step.force_world_n))
+        return step
+
+    coupling.after_substeps = compared
+    for _ in range(12):
+        env.step(np.array([0.0, 0.2, 0.0, 0.0, 0.0, 0.0], dtype=np.float32))
+    assert np.mean(errors["linearised"][3:]) < 0.8 * np.mean(errors["held"][3:])

@@ -247,26 +247,24 @@ def test_published_scene_lesions_are_points(paper_scene_dir) -> None:
 
 @pytest.mark.parametrize("method", ["lm", "penalty", "prescribed"])
 def test_wrench_stiffness_matches_finite_differences(method: str) -> None:
-    """K predicts how the next step's force changes when the probe's pose moves by a small
-    translation, from a press held long enough to settle."""
+    """K predicts how the settled force changes when the probe is pressed a little further
+    from a settled press (the static stiffness: a small difference of two settled states)."""
     t, _ = _pressed(method, "robust")
     position, quat = t.contact_model.probe.position_world.copy(), t.contact_model.probe.quat_wxyz
-    for _ in range(60):
-        t.step(position, quat)
+    for _ in range(100):
+        settled = t.step(position, quat)
     stiffness = t.wrench_stiffness()
     assert stiffness is not None and stiffness.shape == (6, 6)
     np.testing.assert_allclose(stiffness, stiffness.T, atol=1e-9 * np.abs(stiffness).max())
     assert np.linalg.eigvalsh(stiffness[:3, :3]).min() > -1e-6 * np.abs(stiffness).max()
-    state = t.state()
-    base = t.step(position, quat).force_world_n
     pressing = tissue.pressing_direction(quat)
-    delta = 2e-5
-    t.set_state(state)
-    moved = t.step(position + delta * pressing, quat).force_world_n
-    measured = -(moved - base) / delta
+    delta = 2e-4
+    for _ in range(150):
+        moved = t.step(position + delta * pressing, quat)
+    measured = -(moved.force_world_n - settled.force_world_n) / delta
     predicted = stiffness[:3, :3] @ pressing
     assert float(measured @ pressing) > 0.0
-    np.testing.assert_allclose(measured @ pressing, predicted @ pressing, rtol=0.1)
+    np.testing.assert_allclose(measured @ pressing, predicted @ pressing, rtol=0.15)
 
 
 def test_pbd_has_no_wrench_stiffness() -> None:

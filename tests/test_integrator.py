@@ -466,3 +466,27 @@ def test_chord_hand_over_backs_off_after_chords_that_needed_more_iterations() ->
     assert step(False, 1)
     chords._backoff = 8
     assert step(True, 1) and chords._backoff == 4  # a chord that converged halves it
+
+
+@pytest.mark.parametrize("mode", ["paper", "robust"])
+def test_mass_damping_slows_a_rigid_translation_as_backward_euler_says(mode: str) -> None:
+    """A free block translating rigidly feels no elastic force and no stiffness damping, only
+    r_M: backward Euler gives v_{n+1} = v_n / (1 + h r_M) exactly, and the robust Newton,
+    whose Hessian carries the same r_M M / h, gets it in one iteration."""
+    from tissue.mesh import TetMesh
+
+    block = block_mesh((0.02, 0.02, 0.01), (2, 2, 1))
+    free = TetMesh(block.nodes, block.tets, block.region, np.zeros(0, dtype=np.int64))
+    config = SimulationConfig(mode=mode, rayleigh_mass=2.0, rayleigh_stiffness=0.1)
+    sim = TissueSimulator(free, TissueMaterials(tissue=NeoHookean(E, NU)), config)
+    velocity = np.array([0.01, -0.02, 0.005])
+    sim.set_state(free.nodes, np.tile(velocity, (free.node_count, 1)))
+    h = config.tissue_dt
+    for step in range(1, 6):
+        result = sim.step()
+        expected = velocity / (1.0 + h * config.rayleigh_mass) ** step
+        np.testing.assert_allclose(
+            sim.velocities, np.tile(expected, (free.node_count, 1)), rtol=1e-4
+        )
+        if mode == "robust":
+            assert result.newton_iterations == 1

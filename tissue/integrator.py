@@ -269,6 +269,7 @@ class IncrementalPotential:
         targets,
         terms,
         frames: NodeFrames | None = None,
+        quasi_static: bool | None = None,
     ) -> None:
         cfg = integrator.config
         self.frames = frames
@@ -280,7 +281,8 @@ class IncrementalPotential:
         self.targets = targets
         self.terms = terms
         self.constrained = integrator._dof_mask(dofs)
-        self.quasi = cfg.quasi_static
+        # None: the integrator's setting; True: the static potential whatever it says.
+        self.quasi = cfg.quasi_static if quasi_static is None else quasi_static
         self.mass = integrator.mass_dof
         self.external = (
             integrator.external_force.reshape(-1) if integrator.external_force is not None else None

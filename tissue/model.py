@@ -313,10 +313,9 @@ class Tissue:
         """How the tissue's wrench on the probe changes with the probe's displacement, now
         (6 x 6, world frame, about the probe origin): K = -d(force, torque) / d(translation,
         rotation) [N/m, N/rad; N m/m, N m/rad], symmetric positive semi-definite where the
-        probe presses. One tissue step of :attr:`dt` (inertia and damping included) is
-        linearised at the present state and contact set; see
-        :mod:`tissue.wrench_stiffness` for how and what it costs. None for PBD (no
-        tangent)."""
+        probe presses. The tissue's static response, linearised at the present state and
+        contact set; see :mod:`tissue.wrench_stiffness` for how and what it costs. None for
+        PBD (no tangent)."""
         # Under the step's thread rule: a small tissue's kernels on one thread (tissue.threads).
         with one_thread_below(3 * self._resolved.mesh.node_count, SERIAL_STEP_UNKNOWNS):
             return wrench_stiffness(self._model)

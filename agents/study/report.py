@@ -151,14 +151,16 @@ def valid_errors(
     displacement fails by penetration before 10 mm on most lesions from 4,126 tets up.
     """
     wanted = set(configs)
-    by_case: dict[tuple[int, int], dict[tuple[str, str], list[float | None]]] = defaultdict(dict)
+    by_case: dict[tuple[int, ...], dict[tuple[str, str], list[float | None]]] = defaultdict(dict)
     for record in records:
         if record["config"] in wanted:
             key = (record["config"], record["method"])
-            by_case[(record["level"], record["lesion"])][key] = record.get("errors_m", [])
+            lesion_case: tuple[int, ...] = (record["level"], record["lesion"])
+            by_case[lesion_case][key] = record.get("errors_m", [])
     expected = {(r["config"], r["method"]) for r in records if r["config"] in wanted}
     out: dict[str, dict[tuple[str, int], list[float]]] = {c: defaultdict(list) for c in configs}
-    for (level, _lesion), per_run in by_case.items():
+    for lesion_case, per_run in by_case.items():
+        level = lesion_case[0]
         if set(per_run) != expected:
             continue
         reached = [key for key in sorted(per_run) if per_run[key]]

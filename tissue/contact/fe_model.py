@@ -231,17 +231,23 @@ class FEContactModel(ContactModel):
         self.sim.integrator.drop_caches()
 
     def step_tangent(self) -> tuple[Factorization, NDArray[np.bool_]]:
-        """A factorisation of the tangent of one step of ``dt`` at the present state (the
-        robust incremental potential's Hessian, contact left out, the fixed base
-        eliminated) and the eliminated dofs, (3N,) bool: for
-        :func:`tissue.wrench_stiffness.wrench_stiffness`. Leaves the step's own solver
-        untouched."""
+        """A factorisation of the tissue's static tangent at the present state (the elastic
+        stiffness K(x), contact left out, the fixed base eliminated) and the eliminated dofs,
+        (3N,) bool: for :func:`tissue.wrench_stiffness.wrench_stiffness`. Leaves the step's
+        own solver untouched."""
         sim = self.sim
         integrator = sim.integrator
         fixed = node_dofs(self.mesh.fixed_nodes)
         x = sim.positions.copy()
         potential = IncrementalPotential(
-            integrator, x, sim.velocities.copy(), self.dt, fixed, x.reshape(-1)[fixed], ()
+            integrator,
+            x,
+            sim.velocities.copy(),
+            self.dt,
+            fixed,
+            x.reshape(-1)[fixed],
+            (),
+            quasi_static=True,
         )
         system = potential.hessian_system(x.reshape(-1), np.zeros(x.size), project=False)
         if self._tangent_factorizer is None:
