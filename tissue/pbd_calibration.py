@@ -86,14 +86,19 @@ class CalibrationResult:
 
 
 def pressing_direction_of(mesh: TetMesh) -> NDArray[np.float64]:
-    """The direction a calibration press takes: from the tissue towards its fixed base (the
-    built-in phantom's -z; the published scene, whose base is at its largest z, +z), unit,
-    (3,); -z where nothing is fixed."""
-    if mesh.fixed_nodes.size == 0:
+    """The direction a calibration press takes, unit, (3,): towards the fixed base, along
+    the normal of the plane that best fits its nodes (the built-in phantom's -z; the
+    published scene, whose base is at its largest z, +z); -z where fewer than three nodes
+    are fixed."""
+    if mesh.fixed_nodes.size < 3:
         return np.array([0.0, 0.0, -1.0])
-    towards = mesh.nodes[mesh.fixed_nodes].mean(axis=0) - mesh.nodes.mean(axis=0)
-    norm = float(np.linalg.norm(towards))
-    return towards / norm if norm > 0.0 else np.array([0.0, 0.0, -1.0])
+    base = mesh.nodes[mesh.fixed_nodes]
+    centre = base.mean(axis=0)
+    normal = np.linalg.svd(base - centre)[2][-1]
+    normal[np.abs(normal) < 1e-12] = 0.0  # a flat base's normal exactly on its axis
+    normal /= np.linalg.norm(normal)
+    towards_base = centre - mesh.nodes.mean(axis=0)
+    return normal if float(normal @ towards_base) > 0.0 else -normal
 
 
 def _face_pose_and_footprint(
@@ -413,7 +418,7 @@ def fit_force_scale(
 #: Folder under the mesh cache where per-mesh calibrations are kept.
 _CACHE_FOLDER = "pbd-calibration"
 #: Bump when the calibration's procedure changes: cached scales are then computed again.
-_CALIBRATION_VERSION = 2
+_CALIBRATION_VERSION = 3
 
 
 def calibrated_pbd_config(
