@@ -328,8 +328,10 @@ def test_bad_constructor_arguments(block: TetMesh) -> None:
         PBDContact("block.msh", PROBE_SHAPE)  # type: ignore[arg-type]
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize(("mode", "lesion_bound"), [("paper", None), ("robust", 0.11)])
+@pytest.mark.parametrize(
+    ("mode", "lesion_bound"),
+    [("paper", None), pytest.param("robust", 0.11, marks=pytest.mark.slow)],
+)
 def test_calibration_mismatch_within_documented_bounds(mode: str, lesion_bound) -> None:
     """The stored scales of each configuration still match the FE on the default phantom
     (about 5 s and 10 s); the robust one (measured 9.6 %, against 30.2 %) much closer."""
