@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from tissue.errors import ConfigError, TissueInputError
@@ -34,6 +34,18 @@ def _floats(value: str) -> list[float]:
         raise argparse.ArgumentTypeError(
             f"expected comma-separated numbers; got {value!r}"
         ) from None
+
+
+def _names(text: str | None, parse: Callable[[str], object] | None = None) -> list[str] | None:
+    """The names of a comma-separated option (``None`` where it was not given), each checked
+    by ``parse`` (a choice's parser, which raises an error naming the valid ones)."""
+    if text is None or text == "":
+        return None
+    names = [part.strip() for part in text.split(",") if part.strip()]
+    for name in names:
+        if parse is not None:
+            parse(name)
+    return names
 
 
 def _pair(value: str) -> tuple[float, float]:
@@ -322,12 +334,10 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         from tissue.contact import ContactMethod
         from tissue.integrator import IntegrationMode
 
-        methods = args.methods.split(",") if args.methods else None
-        for name in methods or []:
-            ContactMethod.parse(name)
-        modes = args.modes.split(",")
-        for name in modes:
-            IntegrationMode.parse(name)
+        methods = _names(args.methods, ContactMethod.parse)
+        modes = _names(args.modes, IntegrationMode.parse)
+        if not modes:
+            parser.error("--profile needs one or more of paper,robust; got nothing")
         run_contact_benchmark(args.levels, methods, modes, args.json)
         return 0
     if args.command == "bench" and args.bench == "env":
@@ -335,14 +345,11 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         from tissue.contact import ContactMethod
         from tissue.spec import Profile
 
-        methods = args.methods.split(",") if args.methods else None
-        for name in methods or []:
-            ContactMethod.parse(name)
-        profiles = args.profiles.split(",")
-        for name in profiles:
-            Profile.parse(name)
-        ids = args.ids.split(",") if args.ids else None
-        run_env_benchmark(ids, methods, profiles, args.levels, args.json)
+        methods = _names(args.methods, ContactMethod.parse)
+        profiles = _names(args.profiles, Profile.parse)
+        if not profiles:
+            parser.error("--profile needs one or more of paper,robust; got nothing")
+        run_env_benchmark(_names(args.ids), methods, profiles, args.levels, args.json)
         return 0
     if args.command == "bench" and args.bench == "peer":
         from agents.peer_benchmark import run_peer_benchmark

@@ -3,8 +3,10 @@ misleading (each rule for every command)."""
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
+import pkgutil
 import signal
 import subprocess
 import sys
@@ -20,7 +22,18 @@ ROOT = Path(__file__).resolve().parents[1]
 UNWRITABLE = "/proc/probegym-cannot-write/out.json"
 
 
+def _import_commands() -> None:
+    """Import every module of ``agents`` first, so that none binds a patched name for good
+    (a ``from tissue.phantom import breast_phantom`` run while the patch holds)."""
+    import agents
+
+    for info in pkgutil.walk_packages(agents.__path__, "agents."):
+        importlib.import_module(info.name)
+
+
 def _fail_if_called(monkeypatch, target: str) -> None:
+    _import_commands()
+
     def refuse(*args, **kwargs):
         raise AssertionError(f"{target} ran although the arguments were bad")
 

@@ -4,6 +4,8 @@ Physical failures at run time (divergence, inversion) are never raised: they are
 as a :class:`tissue.status.StepStatus`. These exceptions are for input a user can fix.
 """
 
+from collections.abc import Iterable
+
 
 class TissueInputError(ValueError):
     """Bad input: the message says what was given, what was expected and how to fix it."""
@@ -19,3 +21,12 @@ class MaterialError(TissueInputError):
 
 class ConfigError(TissueInputError):
     """A configuration value or name that is not valid."""
+
+
+def check_setting_names(given: Iterable[str], valid: Iterable[str], what: str) -> None:
+    """Raise :class:`ConfigError` naming the ``what`` settings in ``given`` that are not in
+    ``valid`` (both iterables of names), with the valid ones listed."""
+    valid_names = sorted(valid)
+    unknown = sorted(set(given) - set(valid_names))
+    if unknown:
+        raise ConfigError(f"unknown {what} setting(s) {unknown}; valid settings: {valid_names}")

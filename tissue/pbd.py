@@ -281,7 +281,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from tissue.contact.base import ContactMethod, ContactModel, SurfacePoints
-from tissue.errors import ConfigError, TissueInputError
+from tissue.errors import ConfigError, TissueInputError, check_setting_names
 from tissue.material import TissueMaterials
 from tissue.mesh import TetMesh, boundary_faces, triangle_grid
 from tissue.probe import ProbeShape, unit_quat_to_matrix
@@ -465,10 +465,7 @@ class PBDConfig:
     @classmethod
     def from_overrides(cls, **overrides: Any) -> PBDConfig:
         """Build from keyword overrides, rejecting unknown keys with the valid ones listed."""
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(overrides) - names)
-        if unknown:
-            raise ConfigError(f"unknown PBD setting(s) {unknown}; valid settings: {sorted(names)}")
+        check_setting_names(overrides, (f.name for f in fields(cls)), "PBD")
         return cls(**overrides)
 
     @property

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tissue.elasticity import AntiLocking, Elasticity
-from tissue.errors import ConfigError, TissueInputError
+from tissue.errors import ConfigError, TissueInputError, check_setting_names
 from tissue.frames import NodeFrames
 from tissue.integrator import (
     EnergyTerm,
@@ -119,12 +119,7 @@ class SimulationConfig:
     @classmethod
     def from_overrides(cls, **overrides: Any) -> SimulationConfig:
         """Build from keyword overrides, rejecting unknown keys with the valid ones listed."""
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(overrides) - names)
-        if unknown:
-            raise ConfigError(
-                f"unknown simulation setting(s) {unknown}; valid settings: {sorted(names)}"
-            )
+        check_setting_names(overrides, (f.name for f in fields(cls)), "simulation")
         return cls(**overrides)
 
     def integrator_config(self) -> IntegratorConfig:

@@ -36,7 +36,7 @@ from tissue.contact.base import ContactMethod
 from tissue.contact.lagrange import LagrangeParams
 from tissue.contact.penalty import PenaltyParams
 from tissue.contact.prescribed import PrescribedParams
-from tissue.errors import ConfigError
+from tissue.errors import ConfigError, check_setting_names
 from tissue.material import NeoHookean, TissueMaterials
 from tissue.mesh import TetMesh
 from tissue.pbd import PBDConfig
@@ -187,12 +187,7 @@ class TissueSpec:
     @classmethod
     def from_overrides(cls, **overrides: Any) -> TissueSpec:
         """Build from keyword arguments, rejecting unknown names with the valid ones listed."""
-        names = {f.name for f in fields(cls)}
-        unknown = sorted(set(overrides) - names)
-        if unknown:
-            raise ConfigError(
-                f"unknown tissue setting(s) {unknown}; valid settings: {sorted(names)}"
-            )
+        check_setting_names(overrides, (f.name for f in fields(cls)), "tissue")
         return cls(**overrides)
 
     def mesh_kind(self) -> str:
@@ -291,8 +286,13 @@ def load_spec_mesh(spec: TissueSpec) -> TetMesh:
     )
 
 
-def published_scene_dir(mesh: object) -> Path:
-    """The published scene's directory for ``mesh`` (``"paper-scene"`` or a directory)."""
+def published_scene_dir(mesh: object, hint: str = "give its directory") -> Path:
+    """The published scene's directory for ``mesh`` (``"paper-scene"`` or a directory).
+
+    ``"paper-scene"`` is looked for, in order, at :data:`PAPER_SCENE_ENV_VAR`, then at
+    ``shared/paper-scene`` beside the checkout, then under the working directory. ``hint`` ends
+    the error raised where none is found (how the caller names another directory).
+    """
     text = os.fspath(mesh) if isinstance(mesh, (str, os.PathLike)) else ""
     if text and text != PUBLISHED_SCENE:
         return Path(text)
@@ -305,8 +305,8 @@ def published_scene_dir(mesh: object) -> Path:
         if candidate.is_dir():
             return candidate
     raise ConfigError(
-        f"mesh='{PUBLISHED_SCENE}' needs the published scene; none found at "
-        f"{', '.join(str(c) for c in candidates)}. Set {PAPER_SCENE_ENV_VAR} or give its directory"
+        f"the published scene ('{PUBLISHED_SCENE}') was not found at "
+        f"{', '.join(str(c) for c in candidates)}. Set {PAPER_SCENE_ENV_VAR} or {hint}"
     )
 
 

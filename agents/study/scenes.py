@@ -20,7 +20,6 @@ the path is their real probe poses ``Transform0..4``.
 from __future__ import annotations
 
 import hashlib
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -36,26 +35,12 @@ from tissue.errors import ConfigError
 from tissue.mesh import TetMesh, boundary_faces, triangle_grid
 from tissue.paper_scene import spring_nodes_to_volume
 from tissue.probe import Probe, ProbeShape
-
-#: Where ``--scene paper`` looks, in order: this variable, then ``shared/paper-scene`` beside
-#: the checkout, then under the working directory.
-PAPER_SCENE_ENV_VAR = "PROBEGYM_PAPER_SCENE"
+from tissue.spec import PUBLISHED_SCENE, published_scene_dir
 
 
 def default_paper_scene_dir() -> Path:
-    """The published scene's directory (see :data:`PAPER_SCENE_ENV_VAR`)."""
-    candidates = []
-    if os.environ.get(PAPER_SCENE_ENV_VAR):
-        candidates.append(Path(os.environ[PAPER_SCENE_ENV_VAR]))
-    repo = Path(__file__).resolve().parents[2]
-    candidates += [repo.parent / "shared" / "paper-scene", Path.cwd() / "shared" / "paper-scene"]
-    for candidate in candidates:
-        if candidate.is_dir():
-            return candidate
-    raise ConfigError(
-        "--scene paper needs the published scene; none found at "
-        f"{', '.join(str(c) for c in candidates)}. Set {PAPER_SCENE_ENV_VAR} or give --scene DIR"
-    )
+    """The published scene's directory (see :data:`tissue.spec.PAPER_SCENE_ENV_VAR`)."""
+    return published_scene_dir(PUBLISHED_SCENE, hint="give --scene DIR")
 
 
 @dataclass
