@@ -41,7 +41,7 @@ from envs.controller import (
 from envs.coupling import TissueCoupling
 from envs.errors import EnvConfigError
 from envs.observations import ImagingConfig, sensed_wrench
-from envs.rendering import SceneRenderer
+from envs.rendering import CAMERAS, SceneRenderer
 from envs.scene import SceneConfig, build_scene, scene_names
 
 #: A seed configuration of the default arm for the probe over the phantom, pointing down;
@@ -139,6 +139,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[np.float32]], NDArray[np.float32]]):
                     "height",
                     "robot",
                     "flange_site",
+                    "robot_base_m",
                     "robot_dt",
                     "reaction",
                 }  # fmt: skip
@@ -152,6 +153,10 @@ class ProbeEnv(gym.Env[dict[str, NDArray[np.float32]], NDArray[np.float32]]):
             raise EnvConfigError(
                 f"unknown render_mode {render_mode!r}; choose one of "
                 f"{', '.join(self.metadata['render_modes'])} or None"
+            )
+        if camera_name not in CAMERAS:
+            raise EnvConfigError(
+                f"unknown camera_name {camera_name!r}; choose one of {', '.join(CAMERAS)}"
             )
         for name, value in (("width", width), ("height", height)):
             if isinstance(value, bool) or not isinstance(value, int) or not 16 <= value <= 4096:
@@ -196,10 +201,6 @@ class ProbeEnv(gym.Env[dict[str, NDArray[np.float32]], NDArray[np.float32]]):
         self.camera_name = camera_name
         self._renderer: SceneRenderer | None = None
         self._frame_size = (width, height)
-        if camera_name not in ("overview", "probe_side"):
-            raise EnvConfigError(
-                f"unknown camera_name {camera_name!r}; choose one of overview, probe_side"
-            )
         self.action_space = spaces.Box(-1.0, 1.0, shape=(6,), dtype=np.float32)
         self.observation_space = spaces.Dict(self._observation_spaces())  # type: ignore[assignment]
         self._start_pos = np.zeros(3)

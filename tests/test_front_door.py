@@ -172,6 +172,14 @@ def test_snapshots_copies_and_pickles_continue_bit_for_bit(method: str, profile:
         other.set_state(state)
 
 
+def test_a_state_restores_only_into_the_same_materials() -> None:
+    state = tissue.make_tissue(mesh=623).state()
+    tissue.make_tissue(mesh=623).set_state(state)
+    stiffer = tissue.make_tissue(mesh=623, young_pa=5000.0)
+    with pytest.raises(tissue.TissueInputError, match="another tissue"):
+        stiffer.set_state(state)
+
+
 @pytest.mark.parametrize("profile", PROFILES)
 @pytest.mark.parametrize("method", METHODS)
 def test_a_30_mm_teleport_never_ends_ok_with_the_skin_behind_the_probe(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -224,6 +225,22 @@ def test_gmsh_is_left_finalised_and_silent(tmp_path: Path, capfd) -> None:
     assert not gmsh.isInitialized()
     captured = capfd.readouterr()
     assert captured.out == "" and captured.err == ""
+
+
+def _sigpipe_ignored() -> bool:
+    """SIGPIPE's action as the OS has it (Python's ``signal.getsignal`` only remembers)."""
+    with open("/proc/self/status") as status:
+        line = next(line for line in status if line.startswith("SigIgn:"))
+    return bool(int(line.split()[1], 16) >> (signal.SIGPIPE - 1) & 1)
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads Linux's /proc")
+def test_meshing_leaves_sigpipe_ignored(tmp_path: Path) -> None:
+    """gmsh's initialisation resets SIGPIPE to its default; a study's Ctrl-C then died of
+    SIGPIPE on its workers' closed pipes instead of saying what it kept."""
+    assert _sigpipe_ignored()  # Python's start-up action
+    breast_phantom(623, cache_dir=tmp_path)
+    assert _sigpipe_ignored()
 
 
 def test_parse_level() -> None:

@@ -162,7 +162,10 @@ class Tissue:
         mesh = resolved.mesh
         self._lesions = LesionTracker(mesh)
         self._surface = SurfaceView(mesh, self._model.skin, self._lesions)
-        digest = hashlib.sha256(mesh.nodes.tobytes() + mesh.tets.tobytes()).hexdigest()[:16]
+        # The mesh and the materials: a state restores only into the same body.
+        digest = hashlib.sha256(
+            mesh.nodes.tobytes() + mesh.tets.tobytes() + repr(resolved.materials).encode()
+        ).hexdigest()[:16]
         self._fingerprint = f"{resolved.spec.contact}/{resolved.spec.profile}/{digest}"
 
     # ------------------------------------------------------------------ description

@@ -62,12 +62,15 @@ keyed by :data:`GENERATOR_VERSION`, a hash of the spec and the level, written at
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import dataclasses
 import functools
 import hashlib
 import json
 import math
 import os
+import signal
+import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator
@@ -453,6 +456,19 @@ def describe_mesh(mesh: TetMesh) -> str:
 # gmsh plumbing ---------------------------------------------------------------------------
 
 
+def _set_sigpipe(action: Any) -> None:
+    """Put SIGPIPE's action back after gmsh's initialisation, which sets the OS-level action
+    to the default (end the process) behind Python's back: Python ignores SIGPIPE so that a
+    write to a closed pipe raises ``BrokenPipeError``, and a study whose workers' pipes closed
+    on Ctrl-C was killed by the signal instead of saying what it kept."""
+    if action is None:
+        return
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGPIPE, action)
+    elif action in (signal.SIG_IGN, signal.SIG_DFL):  # off the main thread: through libc
+        ctypes.CDLL(None).signal(int(signal.SIGPIPE), int(action))
+
+
 @contextlib.contextmanager
 def gmsh_session(verbose: bool = False) -> Iterator[Any]:
     """gmsh initialised with fixed, deterministic options; finalised on exit.
@@ -466,7 +482,9 @@ def gmsh_session(verbose: bool = False) -> Iterator[Any]:
 
     owned = not gmsh.isInitialized()
     if owned:
+        pipe_action = signal.getsignal(signal.SIGPIPE)
         gmsh.initialize(readConfigFiles=False, interruptible=False)
+        _set_sigpipe(pipe_action)
     try:
         gmsh.model.add(f"probegym-{time.monotonic_ns()}")
         options = {

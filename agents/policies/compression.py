@@ -30,7 +30,7 @@ class CompressionPolicy:
 
     def __call__(self, observation: dict[str, NDArray[np.float32]]) -> NDArray[np.float32]:
         action = np.zeros(6, dtype=np.float32)
-        lateral, depth, _, visible = (float(v) for v in observation["lesion"])
+        _, depth, _, visible = (float(v) for v in observation["lesion"])
         target = float(observation["target_depth"][0])
         if visible < 0.5:
             action[1] = self.search_action

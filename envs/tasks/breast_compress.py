@@ -7,6 +7,7 @@ import time
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
+import mujoco
 import numpy as np
 from gymnasium import spaces
 from numpy.typing import NDArray
@@ -427,8 +428,6 @@ class BreastCompressEnv(ProbeEnv):
 
 
 def _matrix(quat: NDArray[np.float64]) -> NDArray[np.float64]:
-    import mujoco
-
     matrix = np.empty(9)
     mujoco.mju_quat2Mat(matrix, np.asarray(quat, dtype=np.float64))
     return matrix.reshape(3, 3)
@@ -436,8 +435,6 @@ def _matrix(quat: NDArray[np.float64]) -> NDArray[np.float64]:
 
 def _turn(vector: NDArray[np.float64]) -> NDArray[np.float64]:
     """The rotation matrix of a rotation vector [rad]."""
-    import mujoco
-
     angle = float(np.linalg.norm(vector))
     if angle == 0.0:
         return np.eye(3)
