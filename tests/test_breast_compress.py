@@ -19,6 +19,8 @@ ENV_ID = "probegym/BreastCompress-v0"
 METHODS = ("lm", "penalty", "prescribed", "pbd")
 MESH = 623
 
+RL_EXTRA = "SB3 needs the rl extra: pip install -e '.[rl]' (a CPU torch first: see the README)"
+
 
 def _make(contact: str = "lm", **kwargs):
     return gym.make(ENV_ID, contact=contact, mesh=MESH, **kwargs)
@@ -32,7 +34,7 @@ def test_gymnasium_and_sb3_checkers_pass(contact: str) -> None:
     check_env(env.unwrapped, skip_render_check=True)
     sb3 = pytest.importorskip(
         "stable_baselines3.common.env_checker",
-        reason="SB3's checker needs the rl extra: pip install torch==2.13.0 -e '.[rl]'",
+        reason=RL_EXTRA,
     )
     sb3.check_env(env.unwrapped, warn=False)
     env.close()
@@ -344,9 +346,7 @@ def test_vector_environments(mode: str) -> None:
 
 
 def test_sb3_subprocess_vector_environment() -> None:
-    pytest.importorskip(
-        "stable_baselines3", reason="SB3 needs the rl extra: pip install torch==2.13.0 -e '.[rl]'"
-    )
+    pytest.importorskip("stable_baselines3", reason=RL_EXTRA)
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import SubprocVecEnv
 
