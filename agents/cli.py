@@ -15,7 +15,7 @@ from tissue.errors import ConfigError, TissueInputError
 
 
 def _level(value: str) -> int:
-    from tissue.phantom import parse_level
+    from tissue.mesh.phantom import parse_level
 
     try:
         return parse_level(value)
@@ -295,7 +295,7 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         return run_demo(level=args.level, depth_m=args.depth_mm * 1e-3, mode=args.mode)
     if args.command == "compress" and args.case is not None:
         from agents.hard_cases import run_catalogue
-        from tissue.phantom import parse_level
+        from tissue.mesh.phantom import parse_level
 
         _reject_options_a_case_sets(parser, args)
 
@@ -314,7 +314,7 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         return run_study_command(args)
     if args.command == "hard-cases":
         from agents.hard_cases import SMALL_CASES, run_catalogue
-        from tissue.integrator import IntegrationMode
+        from tissue.sim.integrator import IntegrationMode
 
         configs = [IntegrationMode.parse(c).value for c in args.config.split(",")]
         cases = args.cases.split(",") if args.cases else list(SMALL_CASES)
@@ -332,7 +332,7 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     if args.command == "bench" and args.bench == "contact":
         from agents.contact_benchmark import run_contact_benchmark
         from tissue.contact import ContactMethod
-        from tissue.integrator import IntegrationMode
+        from tissue.sim.integrator import IntegrationMode
 
         methods = _names(args.methods, ContactMethod.parse)
         modes = _names(args.modes, IntegrationMode.parse)
@@ -363,8 +363,8 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
 
 def _mesh(level: int, out: Path) -> int:
-    from tissue.mesh_io import write_mesh
-    from tissue.phantom import breast_phantom, describe_mesh
+    from tissue.mesh.io import write_mesh
+    from tissue.mesh.phantom import breast_phantom, describe_mesh
 
     mesh = breast_phantom(level)
     path = write_mesh(mesh, out)

@@ -18,7 +18,7 @@ from agents.compress import (
 from tissue.contact.stability import StabilityMonitor
 from tissue.errors import ConfigError
 from tissue.mesh import TetMesh
-from tissue.paper_scene import spring_nodes_to_volume
+from tissue.mesh.paper_scene import spring_nodes_to_volume
 from tissue.probe import ProbeShape, parse_probe_spec
 
 # Synthetic default depths past first contact [m] (the study's: 10, 20, 25, 30 mm).
@@ -28,7 +28,7 @@ DEFAULT_DEPTHS_M = [0.01, 0.02, 0.025, 0.03]
 def _load_mesh(args: argparse.Namespace) -> TetMesh:
     mesh_arg = str(args.mesh) if args.mesh is not None else "4126"
     if Path(mesh_arg).suffix:
-        from tissue.mesh_io import load_tet_mesh
+        from tissue.mesh.io import load_tet_mesh
 
         if args.fixed_plane is None and args.fixed_nodes is None:
             raise ConfigError(
@@ -43,7 +43,7 @@ def _load_mesh(args: argparse.Namespace) -> TetMesh:
         )
     if args.fixed_plane is not None or args.fixed_nodes is not None or args.scale is not None:
         raise ConfigError("--fixed-plane, --fixed-nodes and --scale apply to --mesh FILE only")
-    from tissue.phantom import breast_phantom, parse_level
+    from tissue.mesh.phantom import breast_phantom, parse_level
 
     return breast_phantom(parse_level(mesh_arg))
 
@@ -67,7 +67,7 @@ def run_compress_command(args: argparse.Namespace) -> int:
         )
     if args.scene is not None:
         args.lesion = 1 if args.lesion is None else args.lesion
-        from tissue.paper_scene import load_paper_scene
+        from tissue.mesh.paper_scene import load_paper_scene
 
         scene = load_paper_scene(args.scene)
         if args.lesion not in scene.probe_poses:

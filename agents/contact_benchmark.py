@@ -50,10 +50,10 @@ from agents.outputs import write_json
 from agents.tissue_benchmark import print_robust_targets, robust_step_target
 from tissue.contact import make_contact_model
 from tissue.contact.prescribed import PrescribedParams
+from tissue.mesh.phantom import PHANTOM_LEVELS, breast_phantom
 from tissue.pbd import PBDConfig
-from tissue.phantom import PHANTOM_LEVELS, breast_phantom
 from tissue.probe import Probe, linear_probe
-from tissue.simulator import SimulationConfig
+from tissue.sim.simulator import SimulationConfig
 
 DEFAULT_LEVELS = tuple(level for level in PHANTOM_LEVELS if level <= 26220)
 DEFAULT_METHODS = ("penalty", "lm", "prescribed", "pbd")
@@ -91,7 +91,7 @@ def benchmark_one(method: str, mode: str, level: int, steps: int) -> dict[str, A
     Args:
         method: ``penalty``, ``lm``, ``prescribed`` (run online) or ``pbd``.
         mode: ``paper`` or ``robust``.
-        level: phantom level (tet count of :data:`tissue.phantom.PHANTOM_LEVELS`).
+        level: phantom level (tet count of :data:`tissue.mesh.phantom.PHANTOM_LEVELS`).
         steps: probe advances of 0.2 mm after the first step in contact.
     """
     mesh = breast_phantom(level)

@@ -18,9 +18,9 @@ from typing import Any
 def _kernels() -> list[Any]:
     """A sample of the kernels a simulation compiles, one per module that has them."""
     from tissue.contact import lagrange, penalty
-    from tissue.fem_kernels import element_pass
+    from tissue.fem.kernels import element_pass
     from tissue.pbd import _project_tets
-    from tissue.solvers import _product
+    from tissue.sim.solvers import _product
 
     return [
         element_pass.parallel,

@@ -53,11 +53,11 @@ from tissue.contact.placement import first_contact_pose
 from tissue.contact.prescribed import PrescribedParams
 from tissue.contact.stability import StabilityMonitor
 from tissue.errors import ConfigError
-from tissue.material import NeoHookean, TissueMaterials
+from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.mesh import TetMesh
 from tissue.pbd import PBDConfig
 from tissue.probe import Probe, ProbeShape, parse_probe_spec, quat_to_matrix
-from tissue.simulator import SimulationConfig
+from tissue.sim.simulator import SimulationConfig
 
 # The energy check allows this much above the work done, relative and absolute [J].
 _ENERGY_SLACK_RELATIVE = 0.02
@@ -171,7 +171,7 @@ def case_path(
     if case.path == "paper":
         if scene_dir is None:
             raise ConfigError(f"hard case {case.name} needs the published scene directory")
-        from tissue.paper_scene import load_paper_scene
+        from tissue.mesh.paper_scene import load_paper_scene
 
         scene = load_paper_scene(scene_dir)
         return plan_scene(scene.probe_poses[scene.tumour_ids[0]])
@@ -265,7 +265,7 @@ def run_hard_case(
     if case.path == "paper":
         if scene_dir is None:
             raise ConfigError(f"hard case {name} needs the published scene (scene_dir)")
-        from tissue.paper_scene import load_paper_scene, remesh_paper_scene
+        from tissue.mesh.paper_scene import load_paper_scene, remesh_paper_scene
 
         mesh = (
             load_paper_scene(scene_dir).mesh
@@ -273,7 +273,7 @@ def run_hard_case(
             else remesh_paper_scene(scene_dir, case.level)
         )
     else:
-        from tissue.phantom import breast_phantom
+        from tissue.mesh.phantom import breast_phantom
 
         mesh = breast_phantom(case.level)
     model = build_case_model(case, method, config, mesh, shape)

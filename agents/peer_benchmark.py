@@ -47,7 +47,7 @@ over the run and divided by the simulated time: milliseconds of computation per 
 second. ``ratio`` is MuJoCo's over ours (> 1: ours is faster). The ``*_steady`` fields leave
 the first step out on both sides. One-time costs are counted on neither side: MuJoCo's is its
 compile (``compile_s``), ours the model's construction, which loads the direct solver's
-library (:meth:`tissue.integrator.ImplicitIntegrator.prepare`; until it did, a process's first
+library (:meth:`tissue.sim.integrator.ImplicitIntegrator.prepare`; until it did, a process's first
 step took 0.5-3.5 s here, mostly numba loading its cache and pypardiso searching the
 environment for MKL, and dominated a 1 s press at 4.1k tets: LM 0.62 x and prescribed 1.34 x
 in robust mode, against 1.31 x and 4.19 x since, in runs on one loaded machine), and the
@@ -76,11 +76,11 @@ from agents.contact_benchmark import threading_environment
 from agents.outputs import write_json
 from tissue.contact import make_contact_model
 from tissue.contact.prescribed import PrescribedParams
-from tissue.material import NeoHookean, TissueMaterials
+from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.mesh import TetMesh
-from tissue.phantom import breast_phantom
+from tissue.mesh.phantom import breast_phantom
 from tissue.probe import BoxProbe, Probe
-from tissue.simulator import SimulationConfig
+from tissue.sim.simulator import SimulationConfig
 
 DEFAULT_LEVELS = (623, 4126, 26220)
 # Probe face (LX along world x, LZ along world y) and depth behind the face [m].

@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 
 from agents.outputs import write_json
-from tissue.material import TissueMaterials
+from tissue.fem.material import TissueMaterials
 from tissue.mesh import top_surface_nodes
-from tissue.phantom import breast_phantom
-from tissue.simulator import SimulationConfig, TissueSimulator
-from tissue.solvers import ConstrainedSystem, DirectFactorizer, LinearSolver, LinearSolverConfig
+from tissue.mesh.phantom import breast_phantom
+from tissue.sim.simulator import SimulationConfig, TissueSimulator
+from tissue.sim.solvers import ConstrainedSystem, DirectFactorizer, LinearSolver, LinearSolverConfig
 
 DEFAULT_LEVELS = (623, 1363, 2539, 4126, 7369, 12861, 26220)
 PROBE_FACE_HALF_SIZE_M = (0.0265, 0.0065)

@@ -7,10 +7,10 @@ import math
 import numpy as np
 
 from tissue.errors import ConfigError
-from tissue.material import TissueMaterials
+from tissue.fem.material import TissueMaterials
 from tissue.mesh import top_surface_nodes
-from tissue.phantom import breast_phantom, describe_mesh
-from tissue.simulator import SimulationConfig, TissueSimulator
+from tissue.mesh.phantom import breast_phantom, describe_mesh
+from tissue.sim.simulator import SimulationConfig, TissueSimulator
 
 # The linear probe's face, about 53 x 13 mm (us_probe_collision.stl of the published scene).
 PROBE_FACE_HALF_SIZE_M = (0.0265, 0.0065)

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tissue.block import block_mesh
 from tissue.errors import ConfigError, MaterialError, MeshError
-from tissue.material import NeoHookean, TissueMaterials
+from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.mesh import TetMesh
-from tissue.simulator import SimulationConfig, TissueSimulator
+from tissue.mesh.block import block_mesh
+from tissue.sim.simulator import SimulationConfig, TissueSimulator
 
 
 @pytest.mark.parametrize(
@@ -90,7 +90,7 @@ def test_bad_simulation_settings_are_named(overrides: dict, named: str) -> None:
 
 
 def test_unknown_level_lists_valid_levels() -> None:
-    from tissue.phantom import parse_level
+    from tissue.mesh.phantom import parse_level
 
     with pytest.raises(ConfigError, match="4126"):
         parse_level(5000)

@@ -24,7 +24,7 @@ UNWRITABLE = "/proc/probegym-cannot-write/out.json"
 
 def _import_commands() -> None:
     """Import every module of ``agents`` first, so that none binds a patched name for good
-    (a ``from tissue.phantom import breast_phantom`` run while the patch holds)."""
+    (a ``from tissue.mesh.phantom import breast_phantom`` run while the patch holds)."""
     import agents
 
     for info in pkgutil.walk_packages(agents.__path__, "agents."):
@@ -55,8 +55,8 @@ def _fail_if_called(monkeypatch, target: str) -> None:
 )
 def test_a_bad_output_path_fails_at_once_in_one_line(monkeypatch, capsys, argv) -> None:
     """Exit 2 with one line naming the option, before any mesh is made or loaded."""
-    _fail_if_called(monkeypatch, "tissue.phantom.breast_phantom")
-    _fail_if_called(monkeypatch, "tissue.phantom.cached_mesh")
+    _fail_if_called(monkeypatch, "tissue.mesh.phantom.breast_phantom")
+    _fail_if_called(monkeypatch, "tissue.mesh.phantom.cached_mesh")
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "cannot write" in err[0] and "probegym-cannot-write" in err[0]
@@ -93,7 +93,7 @@ def test_compress_refuses_what_it_used_to_accept(monkeypatch, capsys, extra, mes
 
 @pytest.mark.parametrize("depth", ["0", "-5", "nan", "inf", "31"])
 def test_demo_refuses_depths_it_cannot_press(monkeypatch, capsys, depth: str) -> None:
-    _fail_if_called(monkeypatch, "tissue.phantom.breast_phantom")
+    _fail_if_called(monkeypatch, "tissue.mesh.phantom.breast_phantom")
     assert main(["demo", "--level", "623", "--depth-mm", depth]) == 2
     assert "--depth-mm must be a depth in (0, 30] mm" in capsys.readouterr().err
 
@@ -102,7 +102,7 @@ def _phantom_file(tmp_path: Path, scale: float = 1.0) -> Path:
     """The 623-tet phantom as a VTU file (its nodes times ``scale``: 1000 for millimetres)."""
     import meshio
 
-    from tissue.phantom import breast_phantom
+    from tissue.mesh.phantom import breast_phantom
 
     mesh = breast_phantom(623)
     path = tmp_path / "phantom.vtu"
@@ -144,9 +144,9 @@ def test_compress_exits_1_when_the_run_was_unstable(tmp_path) -> None:
 def test_json_is_strict_and_a_non_finite_force_is_a_failure(tmp_path) -> None:
     from agents.outputs import write_json
     from tissue.contact import make_contact_model
-    from tissue.phantom import breast_phantom
+    from tissue.mesh.phantom import breast_phantom
     from tissue.probe import linear_probe
-    from tissue.simulator import SimulationConfig
+    from tissue.sim.simulator import SimulationConfig
     from tissue.status import StepStatus
 
     path = write_json(

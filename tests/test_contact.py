@@ -6,7 +6,6 @@ import numba
 import numpy as np
 import pytest
 
-from tissue.block import block_mesh
 from tissue.contact import ContactMethod, make_contact_model
 from tissue.contact import base as contact_base
 from tissue.contact.lagrange import _KEEP_FACTORIZATION_UNKNOWNS, LagrangeParams
@@ -14,12 +13,13 @@ from tissue.contact.penalty import PenaltyParams
 from tissue.contact.placement import first_contact_pose
 from tissue.contact.prescribed import PrescribedParams
 from tissue.errors import ConfigError, TissueInputError
-from tissue.integrator import ChordHandOver
-from tissue.material import NeoHookean, TissueMaterials
-from tissue.pardiso import pardiso_available
+from tissue.fem.material import NeoHookean, TissueMaterials
+from tissue.mesh.block import block_mesh
 from tissue.probe import BoxProbe, Probe, SphereProbe, linear_probe
-from tissue.simulator import SimulationConfig
-from tissue.solvers import SERIAL_STEP_UNKNOWNS
+from tissue.sim.integrator import ChordHandOver
+from tissue.sim.pardiso import pardiso_available
+from tissue.sim.simulator import SimulationConfig
+from tissue.sim.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.status import StepStatus
 from tissue.threads import running_on_one_thread
 
@@ -561,7 +561,7 @@ def test_sliding_prescribed_nodes_are_pushed_along_the_probe_normal_only(block, 
 
 
 def test_four_methods_agree_on_a_phantom_compression() -> None:
-    from tissue.phantom import breast_phantom
+    from tissue.mesh.phantom import breast_phantom
 
     mesh = breast_phantom(4126)  # the level PBD was calibrated on
     shape = linear_probe()
@@ -623,7 +623,7 @@ def test_each_method_runs_the_published_scene_tumour_1_level_1(
     paper_scene_dir, method: str
 ) -> None:
     from agents.compress import build_model, plan_scene, run_compression
-    from tissue.paper_scene import load_paper_scene
+    from tissue.mesh.paper_scene import load_paper_scene
 
     scene = load_paper_scene(paper_scene_dir)
     model = build_model(
@@ -803,8 +803,8 @@ def test_prefetched_compliance_columns_ride_along_with_the_next_solve(
     solution to round-off. With no solve to carry them, W~ solves them itself; a new
     factorisation drops them."""
     import tissue.contact.compliance as compliance
-    import tissue.pardiso as pardiso
-    from tissue.solvers import DirectFactorizer
+    import tissue.sim.pardiso as pardiso
+    from tissue.sim.solvers import DirectFactorizer
 
     model = _model("lm", block, SphereProbe(0.01))
     sim = model.sim

@@ -49,7 +49,6 @@ from functools import lru_cache
 import numpy as np
 import pytest
 
-from tissue.block import centred_ticks, graded_ticks, half_space_mesh
 from tissue.contact import make_contact_model
 from tissue.contact.base import ContactModel, ContactResult
 from tissue.contact.lagrange import LagrangeParams
@@ -57,10 +56,11 @@ from tissue.contact.penalty import PenaltyParams
 from tissue.contact.placement import first_contact_pose
 from tissue.contact.prescribed import PrescribedContact, PrescribedParams
 from tissue.errors import MeshError
-from tissue.material import NeoHookean, TissueMaterials
+from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.mesh import TetMesh, boundary_faces
+from tissue.mesh.block import centred_ticks, graded_ticks, half_space_mesh
 from tissue.probe import CylinderProbe, ProbeShape, SphereProbe, parse_probe_spec
-from tissue.simulator import SimulationConfig
+from tissue.sim.simulator import SimulationConfig
 from tissue.status import StepStatus
 
 E_PA, NU = 3000.0, 0.3

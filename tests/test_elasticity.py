@@ -1,4 +1,5 @@
-"""Invariants of the hyperelastic tets (tissue.elasticity): derivatives, patch test, PSD, ANP."""
+"""Invariants of the hyperelastic tets (tissue.fem.elasticity): derivatives, patch test,
+PSD, ANP."""
 
 from __future__ import annotations
 
@@ -9,9 +10,9 @@ import numpy as np
 import pytest
 import scipy.sparse.linalg as spla
 
-from tissue.elasticity import AntiLocking, Elasticity
 from tissue.errors import ConfigError
-from tissue.material import MaterialLaw, NeoHookean, TissueMaterials
+from tissue.fem.elasticity import AntiLocking, Elasticity
+from tissue.fem.material import MaterialLaw, NeoHookean, TissueMaterials
 from tissue.mesh import TetMesh
 
 LAWS = [MaterialLaw.STABLE, MaterialLaw.CLASSIC]
@@ -382,7 +383,7 @@ def test_closed_form_eigen_solver_is_accurate_near_repeated_eigenvalues(gap: flo
     (relative) on random bases, signs mixed as in the scaling block. Where the gap is wide
     enough for the closed form it also returns them sorted largest first, which the Jacobi
     iteration does not (so the closed form is what ran there)."""
-    from tissue import fem_kernels as kern
+    from tissue.fem import kernels as kern
 
     rng = np.random.default_rng(3)
     count = 400

@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from tissue.block import block_mesh
 from tissue.errors import TissueInputError
-from tissue.frames import NodeFrames
-from tissue.material import NeoHookean, TissueMaterials
+from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.mesh import node_dofs
-from tissue.mesh_io import nodes_on_plane
-from tissue.simulator import SimulationConfig, TissueSimulator
-from tissue.solvers import ConstrainedSystem, LinearSolver, LinearSolverConfig
+from tissue.mesh.block import block_mesh
+from tissue.mesh.io import nodes_on_plane
+from tissue.sim.frames import NodeFrames
+from tissue.sim.simulator import SimulationConfig, TissueSimulator
+from tissue.sim.solvers import ConstrainedSystem, LinearSolver, LinearSolverConfig
 from tissue.status import StepStatus
 
 MATERIALS = TissueMaterials(tissue=NeoHookean(3000.0, 0.45))

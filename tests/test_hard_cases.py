@@ -16,9 +16,9 @@ from agents.compress import run_compression
 from agents.hard_cases import HARD_CASES, SMALL_CASES, case_path, hard_case, run_hard_case
 from tissue.contact import make_contact_model
 from tissue.errors import ConfigError
-from tissue.phantom import breast_phantom
+from tissue.mesh.phantom import breast_phantom
 from tissue.probe import parse_probe_spec
-from tissue.simulator import SimulationConfig
+from tissue.sim.simulator import SimulationConfig
 
 METHODS = ("lm", "penalty", "prescribed", "pbd")
 # (case, method) -> why it still fails, measured on the 1,363-tet level.

@@ -8,13 +8,13 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from tissue.block import block_mesh
-from tissue.integrator import CHORD_BACKOFF_MAX_STEPS, ChordHandOver
-from tissue.material import NeoHookean, TissueMaterials
+from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.mesh import node_dofs
-from tissue.mesh_io import nodes_on_plane
-from tissue.simulator import SimulationConfig, TissueSimulator, settle
-from tissue.solvers import ConstrainedSystem
+from tissue.mesh.block import block_mesh
+from tissue.mesh.io import nodes_on_plane
+from tissue.sim.integrator import CHORD_BACKOFF_MAX_STEPS, ChordHandOver
+from tissue.sim.simulator import SimulationConfig, TissueSimulator, settle
+from tissue.sim.solvers import ConstrainedSystem
 from tissue.status import StepStatus
 
 E, NU = 3000.0, 0.45
@@ -325,7 +325,7 @@ def test_line_search_extrapolates_a_full_step_that_falls_short(fraction: float) 
     to the secant's zero of the directional derivative: exact on a quadratic, capped at 4.
     Past half of Newton's step (the energy falling at under half its initial rate at its end)
     the step is kept as it is."""
-    from tissue.integrator import ImplicitIntegrator
+    from tissue.sim.integrator import ImplicitIntegrator
 
     energy = _Quadratic()
     y = np.zeros(6)
@@ -345,7 +345,7 @@ def test_line_search_keeps_a_good_full_step_and_evaluates_last_where_it_ends() -
     """Newton's own step is kept without a further evaluation; a step whose extrapolation
     does not lower the energy is kept too, evaluated again (contact terms report the last
     evaluation's forces)."""
-    from tissue.integrator import ImplicitIntegrator
+    from tissue.sim.integrator import ImplicitIntegrator
 
     energy = _Quadratic()
     y = np.zeros(6)
@@ -406,7 +406,7 @@ def test_start_evaluation_with_tangent_serves_the_hessian_there_only() -> None:
 
 def test_term_stiffness_outside_the_mesh_pattern_is_an_error() -> None:
     """A term coupling two nodes of no common tet cannot enter the elastic pattern: named."""
-    from tissue.integrator import TermEvaluation
+    from tissue.sim.integrator import TermEvaluation
 
     size = 0.02
     mesh = block_mesh((size, size, size / 2), (4, 4, 2), fix="z=min")

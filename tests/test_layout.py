@@ -20,7 +20,8 @@ def test_generic_package_names_resolve_to_this_repository(package: str) -> None:
 
 def test_tissue_imports_no_robot_or_learning_stack() -> None:
     code = (
-        "import sys, tissue, tissue.simulator, tissue.phantom, tissue.mesh_io, tissue.solvers;"
+        "import sys, tissue, tissue.sim.simulator, tissue.mesh.phantom, tissue.mesh.io;"
+        "import tissue.sim.solvers;"
         "heavy = ('mujoco', 'gymnasium', 'torch', 'stable_baselines3');"
         "bad = [m for m in heavy if m in sys.modules];"
         "print(','.join(bad))"
@@ -66,7 +67,7 @@ def test_the_import_check_sees_a_private_import(tmp_path, monkeypatch) -> None:
     layout = sys.modules[__name__]
     fake = tmp_path / "envs"
     fake.mkdir()
-    (fake / "bad.py").write_text("from tissue.simulator import TissueSimulator\n")
+    (fake / "bad.py").write_text("from tissue.sim.simulator import TissueSimulator\n")
     monkeypatch.setattr(layout, "ROOT", tmp_path)
     (tmp_path / "tissue").mkdir()
     with pytest.raises(AssertionError, match="public names"):

@@ -10,7 +10,7 @@ import pytest
 
 from tissue.errors import ConfigError, MeshError
 from tissue.mesh import TetMesh
-from tissue.mesh_io import (
+from tissue.mesh.io import (
     load_mesh_npz,
     load_tet_mesh,
     nodes_on_plane,

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from tissue.errors import ConfigError, MeshError
-from tissue.paper_scene import load_paper_scene, read_stl, remesh_paper_scene
-from tissue.phantom import CACHE_ENV_VAR, PHANTOM_LEVELS
+from tissue.mesh.paper_scene import load_paper_scene, read_stl, remesh_paper_scene
+from tissue.mesh.phantom import CACHE_ENV_VAR, PHANTOM_LEVELS
 
 SCENE = Path(__file__).resolve().parents[2] / "shared" / "paper-scene"
 

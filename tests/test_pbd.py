@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 
 import tissue.pbd as pbd
-from tissue.block import block_mesh
 from tissue.contact.base import ContactMethod
 from tissue.errors import ConfigError
 from tissue.mesh import TetMesh
+from tissue.mesh.block import block_mesh
+from tissue.mesh.phantom import breast_phantom
 from tissue.pbd import PBDConfig, PBDContact
 from tissue.pbd_calibration import calibrate_pbd
-from tissue.phantom import breast_phantom
 from tissue.probe import BoxProbe, Probe, quat_to_matrix
 from tissue.status import StepStatus
 
@@ -518,7 +518,7 @@ _KERNEL_SIGNATURES_SCRIPT = """
 import json
 import numpy as np
 import tissue.pbd as pbd
-from tissue.block import block_mesh
+from tissue.mesh.block import block_mesh
 from tissue.probe import BoxProbe, Probe
 
 def signatures():

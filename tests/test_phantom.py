@@ -10,10 +10,9 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-from tissue import phantom
 from tissue.errors import ConfigError
-from tissue.mesh import TetMesh
-from tissue.phantom import (
+from tissue.mesh import TetMesh, phantom
+from tissue.mesh.phantom import (
     PHANTOM_LEVELS,
     LesionSpec,
     PhantomSpec,

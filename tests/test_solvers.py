@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from tissue.block import block_mesh
-from tissue.elasticity import Elasticity
 from tissue.errors import ConfigError
-from tissue.material import TissueMaterials
-from tissue.pardiso import pardiso_available
-from tissue.solvers import (
+from tissue.fem.elasticity import Elasticity
+from tissue.fem.material import TissueMaterials
+from tissue.mesh.block import block_mesh
+from tissue.sim.pardiso import pardiso_available
+from tissue.sim.solvers import (
     _NO_BLOCKS,
     ConstrainedSystem,
     DirectFactorizer,
@@ -341,7 +341,7 @@ def test_kept_factor_is_corrected_for_rank_one_terms_changed_since(declared: boo
 def test_too_many_rank_one_changes_refactorise(monkeypatch) -> None:
     """More changed terms than the cap on held columns: the kept factor is refreshed (and
     the solve is exact)."""
-    import tissue.solvers as solvers
+    import tissue.sim.solvers as solvers
 
     monkeypatch.setattr(solvers, "MAX_RANK_ONE_SINCE", 6)
     rng, base, old, now, constrained, values = _rank_one_scene(12)
@@ -366,7 +366,7 @@ def test_kept_factorization_correction_outgrows_its_column_cap(monkeypatch) -> N
     """Dofs constrained, released and others constrained under one kept factor: the columns
     held outnumber the cap on the active set (the column array grows), and each solve stays
     exact without a refactorisation."""
-    import tissue.solvers as solvers
+    import tissue.sim.solvers as solvers
 
     monkeypatch.setattr(solvers, "MAX_CONSTRAINED_SINCE", 30)
     rng = np.random.default_rng(5)
@@ -462,7 +462,7 @@ def test_symmetric_product_matches_the_csr_product() -> None:
 def test_pattern_analysed_ahead_serves_the_first_kept_factorisation() -> None:
     """``analyse`` runs the symbolic phase when a model is built; the first ``reuse`` solve
     then only factorises (no phase 11) and solves correctly."""
-    import tissue.pardiso as pardiso
+    import tissue.sim.pardiso as pardiso
 
     rng = np.random.default_rng(8)
     matrix = _laplacian_3d(6, 0.05)

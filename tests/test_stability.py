@@ -90,7 +90,7 @@ def _compression_failing_at(call: int, depths: list[float], settle: int) -> dict
     from dataclasses import replace
 
     from agents.compress import build_model, plan_straight, run_compression
-    from tissue.phantom import breast_phantom
+    from tissue.mesh.phantom import breast_phantom
     from tissue.probe import linear_probe
 
     mesh = breast_phantom(623)

@@ -21,8 +21,8 @@ which a tissue applies with its defaults if no one did).
 
 from tissue.contact.base import ContactMethod
 from tissue.errors import ConfigError, MaterialError, MeshError, TissueInputError
+from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.lesions import Lesion
-from tissue.material import NeoHookean, TissueMaterials
 from tissue.model import (
     StepDiagnostics,
     Tissue,

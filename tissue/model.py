@@ -26,7 +26,7 @@ from tissue.contact.placement import first_contact_pose, radial_roll_rad, skin_n
 from tissue.errors import TissueInputError
 from tissue.lesions import Lesion, LesionTracker
 from tissue.probe import ProbeShape, quat_to_matrix
-from tissue.solvers import SERIAL_STEP_UNKNOWNS
+from tissue.sim.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.spec import ResolvedTissue, TissueSpec, resolve_spec
 from tissue.status import StepStatus
 from tissue.surface_mesh import SurfaceMesh, SurfaceView

@@ -21,7 +21,7 @@ sweeps over all constraints (multipliers reset to zero at each substep), and v =
       C_H = det F - gamma,     alpha_H = 1 / (lambda' V)      (hydrostatic)
 
   whose XPBD energy C^2 / (2 alpha) summed is the stable neo-Hookean energy of
-  :mod:`tissue.material` (Smith, de Goes & Kim 2018) up to a constant: lambda' = lambda + mu and
+  :mod:`tissue.fem.material` (Smith, de Goes & Kim 2018) up to a constant: lambda' = lambda + mu and
   gamma = 1 + mu / lambda', so the small-strain response is linear elasticity with the FE's
   Lamé parameters (mu, lambda) exactly, and an inverted tet (det F < 0) is pushed back. The two
   constraints of a tet are solved together as one 2 x 2 system (the coupled solve of that
@@ -41,7 +41,7 @@ sweeps over all constraints (multipliers reset to zero at each substep), and v =
   was slower on two threads than on one (1.86 against 1.68 ms at 26,220 tets); renumbered,
   0.93 ms. The separator holds 16 % of the tets at 4,126 tets, 8 % at 26,220 and 4 % at
   176,506. Below 3,000 unknowns (4,126 tets and coarser) the step runs on one thread anyway
-  (``tissue.solvers.SERIAL_STEP_UNKNOWNS``): there, waking the second thread each sweep costs
+  (``tissue.sim.solvers.SERIAL_STEP_UNKNOWNS``): there, waking the second thread each sweep costs
   about what it saves (0.22 ms a sweep on one thread, 0.21 on two with the passive waiting
   ``tissue`` sets by default, 0.14 with spinning workers, ``OMP_WAIT_POLICY=active``, which
   slow everything else on a busy machine: see ``tissue/__init__.py``).
@@ -282,7 +282,7 @@ from scipy.spatial import cKDTree
 
 from tissue.contact.base import ContactMethod, ContactModel, SurfacePoints
 from tissue.errors import ConfigError, TissueInputError, check_setting_names
-from tissue.material import TissueMaterials
+from tissue.fem.material import TissueMaterials
 from tissue.mesh import TetMesh, boundary_faces, triangle_grid
 from tissue.probe import ProbeShape, unit_quat_to_matrix
 from tissue.status import StepStatus

@@ -20,12 +20,12 @@ from numpy.typing import NDArray
 
 from tissue.contact.base import ContactModel
 from tissue.errors import TissueInputError
-from tissue.material import TissueMaterials
+from tissue.fem.material import TissueMaterials
 from tissue.mesh import TetMesh, boundary_faces
+from tissue.mesh.phantom import breast_phantom
 from tissue.pbd import PBDConfig, PBDContact
-from tissue.phantom import breast_phantom
 from tissue.probe import LinearProbeFace, Probe, ProbeShape, quat_to_matrix
-from tissue.simulator import SimulationConfig, TissueSimulator
+from tissue.sim.simulator import SimulationConfig, TissueSimulator
 from tissue.status import SEVERITY, StepStatus
 
 
@@ -281,7 +281,7 @@ def calibrate_pbd(
     ``config``'s scales are evaluated (what the slow test does with the stored constants).
 
     Args:
-        level: the phantom level (tet count), see :func:`tissue.phantom.breast_phantom`, or
+        level: the phantom level (tet count), see :func:`tissue.mesh.phantom.breast_phantom`, or
             the mesh itself.
         materials: tissue materials; default E = 2850 Pa, nu = 0.49.
         config: PBD settings; the scales in it are the starting point (or the ones checked).
@@ -438,7 +438,7 @@ def calibrated_pbd_config(
     import hashlib
     import json
 
-    from tissue.phantom import mesh_cache_dir
+    from tissue.mesh.phantom import mesh_cache_dir
 
     materials = materials or TissueMaterials()
     key_parts = [

@@ -8,7 +8,7 @@ lower-level configuration a tissue is built from (:class:`ResolvedTissue`): the 
 The profiles:
 
 - ``paper``: as Tagliabue et al. 2020 -- one linearised backward-Euler solve per step, CG
-  capped at 25 iterations (``tissue.simulator.SimulationConfig(mode="paper")``); prescribed
+  capped at 25 iterations (``tissue.sim.simulator.SimulationConfig(mode="paper")``); prescribed
   displacement with the node set chosen at first contact (on the published scene, its own
   set for the lesion); penalty with plain springs; the 10-substep XPBD baseline.
 - ``robust``: Newton to a tolerance with line search, PSD-projected tangents, step
@@ -37,11 +37,11 @@ from tissue.contact.lagrange import LagrangeParams
 from tissue.contact.penalty import PenaltyParams
 from tissue.contact.prescribed import PrescribedParams
 from tissue.errors import ConfigError, check_setting_names
-from tissue.material import NeoHookean, TissueMaterials
+from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.mesh import TetMesh
 from tissue.pbd import PBDConfig
 from tissue.probe import ProbeShape, parse_probe_spec
-from tissue.simulator import SimulationConfig
+from tissue.sim.simulator import SimulationConfig
 
 #: ``TissueSpec(mesh=PUBLISHED_SCENE)`` loads the published scene from where the project
 #: looks for it (``PROBEGYM_PAPER_SCENE``, then ``shared/paper-scene`` beside the checkout).
@@ -86,7 +86,7 @@ class TissueSpec:
         young_pa: the bulk tissue's Young's modulus [Pa] (default 2850).
         poisson: the bulk tissue's Poisson ratio (default 0.49).
         lesion_stiffness_ratio: E_lesion / E_tissue (default 4).
-        materials: a full :class:`tissue.material.TissueMaterials` instead of the three above.
+        materials: a full :class:`tissue.fem.material.TissueMaterials` instead of the three above.
         contact_params: the method's parameters (:data:`PARAMS_TYPES`), replacing the
             profile's; None: the profile's.
         probe: the probe's shape: ``face`` (the linear probe, default), ``sphere:R``,
@@ -135,7 +135,7 @@ class TissueSpec:
                 )
             if not isinstance(self.materials, TissueMaterials):
                 raise ConfigError(
-                    f"materials must be a tissue.material.TissueMaterials; got "
+                    f"materials must be a tissue.fem.material.TissueMaterials; got "
                     f"{type(self.materials).__name__}"
                 )
         else:
@@ -198,7 +198,7 @@ class TissueSpec:
         if isinstance(mesh, bool):
             raise ConfigError(f"mesh must be a level, a file or a directory; got {mesh!r}")
         if isinstance(mesh, (int, np.integer)) or (isinstance(mesh, str) and mesh.isdigit()):
-            from tissue.phantom import parse_level
+            from tissue.mesh.phantom import parse_level
 
             parse_level(int(mesh))  # validates the level
             return "level"
@@ -266,15 +266,15 @@ def load_spec_mesh(spec: TissueSpec) -> TetMesh:
         assert isinstance(spec.mesh, TetMesh)
         return spec.mesh
     if kind == "level":
-        from tissue.phantom import breast_phantom
+        from tissue.mesh.phantom import breast_phantom
 
         assert isinstance(spec.mesh, (int, str, np.integer))
         return breast_phantom(int(spec.mesh))
     if kind == "scene":
-        from tissue.paper_scene import load_paper_scene
+        from tissue.mesh.paper_scene import load_paper_scene
 
         return load_paper_scene(published_scene_dir(spec.mesh)).mesh
-    from tissue.mesh_io import load_tet_mesh
+    from tissue.mesh.io import load_tet_mesh
 
     assert isinstance(spec.mesh, (str, os.PathLike))
     fixed_file = spec.fixed_nodes_file
@@ -348,7 +348,7 @@ def resolve_spec(spec: TissueSpec, mesh: TetMesh | None = None) -> ResolvedTissu
 
 def published_node_set(spec: TissueSpec, mesh: TetMesh) -> tuple[int, ...]:
     """The published prescribed-node set of ``spec.scene_lesion``, as volume boundary nodes."""
-    from tissue.paper_scene import load_paper_scene, spring_nodes_to_volume
+    from tissue.mesh.paper_scene import load_paper_scene, spring_nodes_to_volume
 
     scene = load_paper_scene(published_scene_dir(spec.mesh))
     if spec.scene_lesion not in scene.spring_nodes:

@@ -29,7 +29,7 @@ policy (:data:`DEFAULT_POLICY`). The policy:
   environment variable (which would also reach other libraries in the process); a user's
   ``MKL_THREADING_LAYER`` is respected.
 - numba's thread count for meshes large enough to run their kernels in parallel
-  (``tissue.solvers.SERIAL_STEP_UNKNOWNS``); smaller tissues run, build and step, on one
+  (``tissue.sim.solvers.SERIAL_STEP_UNKNOWNS``); smaller tissues run, build and step, on one
   thread whatever this says.
 
 Bits: a tissue below that size gives the same bits whatever the thread count (its build and

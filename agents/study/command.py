@@ -16,7 +16,7 @@ from agents.study.spec import (
 )
 from tissue.contact.base import ContactMethod
 from tissue.errors import ConfigError
-from tissue.phantom import PHANTOM_LEVELS
+from tissue.mesh.phantom import PHANTOM_LEVELS
 
 
 def add_study_arguments(study: argparse.ArgumentParser) -> None:

@@ -73,9 +73,9 @@ from tissue.contact.base import ContactMethod
 from tissue.contact.lagrange import LagrangeParams
 from tissue.contact.stability import StabilityMonitor
 from tissue.errors import ConfigError
-from tissue.phantom import mesh_cache_dir
+from tissue.mesh.phantom import mesh_cache_dir
 from tissue.probe import parse_probe_spec
-from tissue.simulator import SimulationConfig
+from tissue.sim.simulator import SimulationConfig
 
 #: Bump when the reference computation changes (5: quasi-static LM's contact tangent, which
 #: completes references that stalled or diverged before and were cached as such).
@@ -240,7 +240,7 @@ def compute_reference(
         mode="robust", quasi_static=kind == QUASI_STATIC, newton_tolerance=REFERENCE_TOLERANCE
     )
     from tissue.contact import make_contact_model
-    from tissue.material import TissueMaterials
+    from tissue.fem.material import TissueMaterials
 
     model = make_contact_model(
         ContactMethod.LM,

@@ -1,6 +1,6 @@
 """The study's scenes: where its meshes, lesions and probe paths come from.
 
-``synthetic``: the built-in phantom (:mod:`tissue.phantom`) at the 9 levels, lesions 1-10.
+``synthetic``: the built-in phantom (:mod:`tissue.mesh.phantom`) at the 9 levels, lesions 1-10.
 The probe is placed on the skin above each lesion, normal to the surface: the pressing
 direction is the inward normal of the collision surface at the skin point straight above
 the lesion's centre, aimed through the centre, with the probe's long axis down the slope (a
@@ -33,7 +33,7 @@ from tissue.contact.base import contact_surface
 from tissue.contact.placement import first_contact_pose, radial_roll_rad, skin_normal_above
 from tissue.errors import ConfigError
 from tissue.mesh import TetMesh, boundary_faces, triangle_grid
-from tissue.paper_scene import spring_nodes_to_volume
+from tissue.mesh.paper_scene import spring_nodes_to_volume
 from tissue.probe import Probe, ProbeShape
 from tissue.spec import PUBLISHED_SCENE, published_scene_dir
 
@@ -63,18 +63,18 @@ class StudyScene:
     def mesh(self, level: int) -> TetMesh:
         """The scene's volume mesh at ``level`` (generated and cached on first use)."""
         if self.directory is None:
-            from tissue.phantom import breast_phantom
+            from tissue.mesh.phantom import breast_phantom
 
             return breast_phantom(level)
         if level == NATIVE_LEVEL:
             return self.paper_scene().mesh
-        from tissue.paper_scene import remesh_paper_scene
+        from tissue.mesh.paper_scene import remesh_paper_scene
 
         return remesh_paper_scene(self.directory, level)
 
     def paper_scene(self) -> Any:
         if self._scene is None:
-            from tissue.paper_scene import load_paper_scene
+            from tissue.mesh.paper_scene import load_paper_scene
 
             assert self.directory is not None
             self._scene = load_paper_scene(self.directory)
@@ -87,7 +87,7 @@ class StudyScene:
     def fingerprint(self) -> str:
         """Changes whenever the scene's data change (keys the reference cache)."""
         if self.directory is None:
-            from tissue.phantom import GENERATOR_VERSION, PhantomSpec
+            from tissue.mesh.phantom import GENERATOR_VERSION, PhantomSpec
 
             return f"synthetic-g{GENERATOR_VERSION}-{PhantomSpec().content_hash()[:16]}"
         digest = hashlib.sha256()
@@ -163,7 +163,7 @@ def open_scene(scene: str) -> StudyScene:
         raise ConfigError(
             f"--scene {scene!r} is neither 'synthetic', 'paper' nor a readable directory"
         )
-    from tissue.paper_scene import load_paper_scene
+    from tissue.mesh.paper_scene import load_paper_scene
 
     loaded = load_paper_scene(directory)
     return StudyScene("paper", directory.resolve(), loaded.tumour_ids, loaded)

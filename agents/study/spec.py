@@ -16,7 +16,7 @@ from agents.compress import ACCURATE_SETTLE_STEPS
 from tissue.choices import Choice
 from tissue.contact.base import ContactMethod
 from tissue.errors import ConfigError
-from tissue.phantom import PHANTOM_LEVELS, parse_level
+from tissue.mesh.phantom import PHANTOM_LEVELS, parse_level
 
 #: The published scene's own volume mesh (9,295 tets), as a level of the study.
 NATIVE_LEVEL = 0

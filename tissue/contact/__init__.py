@@ -11,7 +11,7 @@ from tissue.contact.base import ContactMethod, ContactModel, ContactResult
 from tissue.contact.lagrange import LagrangeContact, LagrangeParams
 from tissue.contact.penalty import PenaltyContact, PenaltyParams
 from tissue.contact.prescribed import PrescribedContact, PrescribedParams
-from tissue.solvers import SERIAL_STEP_UNKNOWNS
+from tissue.sim.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.threads import one_thread_below, thread_policy
 
 # name -> (model class, its parameter dataclass)

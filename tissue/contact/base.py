@@ -21,11 +21,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from tissue.choices import Choice
 from tissue.contact.tunnelling import face_samples, skin_behind_probe
-from tissue.embedding import BarycentricEmbedding
 from tissue.errors import TissueInputError
 from tissue.mesh import TetMesh, boundary_faces
+from tissue.mesh.embedding import BarycentricEmbedding
 from tissue.probe import Probe, ProbeShape
-from tissue.solvers import SERIAL_STEP_UNKNOWNS
+from tissue.sim.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.status import StepStatus, worst
 from tissue.threads import one_thread_below
 

@@ -12,12 +12,12 @@ from numpy.typing import NDArray
 
 from tissue.contact.base import ContactModel, SurfacePoints, boundary_surface, contact_surface
 from tissue.errors import ConfigError
-from tissue.integrator import IncrementalPotential, IntegrationMode
-from tissue.material import TissueMaterials
+from tissue.fem.material import TissueMaterials
 from tissue.mesh import TetMesh, node_dofs
 from tissue.probe import Probe, ProbeShape
-from tissue.simulator import SimulationConfig, TissueSimulator
-from tissue.solvers import DirectFactorizer, Factorization
+from tissue.sim.integrator import IncrementalPotential, IntegrationMode
+from tissue.sim.simulator import SimulationConfig, TissueSimulator
+from tissue.sim.solvers import DirectFactorizer, Factorization
 from tissue.wrench_stiffness import ContactConstraints
 
 # In robust mode, contact acts on the volume's boundary nodes instead of the collision

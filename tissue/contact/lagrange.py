@@ -97,8 +97,8 @@ from tissue.contact.fe_model import (
     transpose_product,
 )
 from tissue.errors import ConfigError, TissueInputError
-from tissue.frames import find_column
-from tissue.integrator import (
+from tissue.sim.frames import find_column
+from tissue.sim.integrator import (
     LINEAR_SHARE_OF_TOLERANCE,
     PROJECTION_SWITCH,
     RESIDUAL_SCALE_FLOOR,
@@ -107,8 +107,8 @@ from tissue.integrator import (
     extrapolated_positions,
     floored_tolerance,
 )
-from tissue.pardiso import PardisoFactorization
-from tissue.solvers import (
+from tissue.sim.pardiso import PardisoFactorization
+from tissue.sim.solvers import (
     ConstrainedSystem,
     Factorization,
     LinearSolverKind,
@@ -505,7 +505,7 @@ class LagrangeContact(FEContactModel):
         """The first iterate of a dynamic step of ``h`` [s] from (x [m], v [m/s]), (3N,):
         x + h v + h^2 (v - v_last) / h_last when the step continues from the state the last
         one ended in (v_last: the velocities it started from), as the integrator's own
-        Newton starts (:meth:`tissue.integrator.ImplicitIntegrator.step`); else None."""
+        Newton starts (:meth:`tissue.sim.integrator.ImplicitIntegrator.step`); else None."""
         last = self._continued_step(x, v)
         if last is None:
             return None
@@ -807,7 +807,7 @@ class LagrangeContact(FEContactModel):
 
         ``tolerance`` is the relative residual asked; ``enough`` [N] an absolute residual
         over the free dofs at which the solve may stop earlier (as the integrator's
-        :meth:`~tissue.integrator.IncrementalPotential.newton_direction`). Returns (step,
+        :meth:`~tissue.sim.integrator.IncrementalPotential.newton_direction`). Returns (step,
         report, the absolute residual asked [N]: what the response solves may leave too).
         """
         loaded = system.with_load(transpose_product(rows, forces)) if forces.size else system

@@ -12,7 +12,7 @@ re-evaluated at every Newton iterate (so contacts appearing during the step are 
 Their stiffness also goes to the linear solver as one rank-one term per active point, so
 that the robust solver's kept factorisation is corrected for springs that joined or left
 since it was computed instead of letting CG pay an iteration for each
-(:class:`~tissue.solvers.RankOneTerms`).
+(:class:`~tissue.sim.solvers.RankOneTerms`).
 
 Robust mode also augments the springs (augmented Lagrangian, Simo & Laursen 1992; Wriggers,
 *Computational Contact Mechanics*, 2006, section 6.3): each point carries a force offset
@@ -50,7 +50,7 @@ Newton iterations in a step (lesion 8: 12 -> 10; lesion 3: 19 -> 9; 12,861 tets,
 rim, as the exact tangent's full steps did for LM's dynamic steps.
 What helps instead is the integrator's extrapolating line search (a full step whose
 directional derivative is still below half the initial one tries the secant step, up to 4 x;
-``tissue.integrator._extrapolate``): that cell's steps 639-645 took 145 s instead of 206 s
+``tissue.sim.integrator._extrapolate``): that cell's steps 639-645 took 145 s instead of 206 s
 (all its steps 730 s instead of 886 s, 22 over 5 s), one of them split (643: 99 s, five
 augmentation rounds, each solve restarting from the step's start) where four were; steps
 where it does not act are bit-identical.
@@ -74,12 +74,12 @@ from numpy.typing import NDArray
 from tissue.contact.base import ContactMethod, SurfacePoints
 from tissue.contact.fe_model import FEContactModel, detect_contacts
 from tissue.errors import ConfigError
-from tissue.integrator import IntegrationMode, TermEvaluation
-from tissue.material import TissueMaterials
+from tissue.fem.material import TissueMaterials
 from tissue.mesh import TetMesh
 from tissue.probe import Probe
-from tissue.simulator import StepResult, TissueSimulator
-from tissue.solvers import RankOneTerms
+from tissue.sim.integrator import IntegrationMode, TermEvaluation
+from tissue.sim.simulator import StepResult, TissueSimulator
+from tissue.sim.solvers import RankOneTerms
 from tissue.status import StepStatus
 from tissue.wrench_stiffness import ContactConstraints
 
@@ -217,7 +217,7 @@ class PenaltyTerm:
             stiffness_values=values,
             # The same stiffness as one term k_s v v^T per active point, v = (w_a n)_a over
             # its tet's 12 dofs: a kept factorisation is corrected for points entering and
-            # leaving contact in low rank (tissue.solvers._RankOneSince).
+            # leaving contact in low rank (tissue.sim.solvers._RankOneSince).
             rank_one=RankOneTerms(
                 keys=contacts.points[active],
                 dofs=dofs,

@@ -19,7 +19,7 @@ This removes the paper's main limitation ("a priori knowledge of contact area ne
 ``sliding=True`` (online only) makes the contact frictionless: a node in contact is held
 only along the probe's normal, on the plane tangent to the probe at its nearest surface
 point at the step's pose, and slides freely within it (a Dirichlet condition on its normal
-coordinate, in a frame rotated to that normal; see :mod:`tissue.frames`). Its reaction is
+coordinate, in a frame rotated to that normal; see :mod:`tissue.sim.frames`). Its reaction is
 normal to the probe; it leaves contact when that reaction pulls.
 
 Where online prescribed displacement still differs from Lagrange multipliers:
@@ -50,8 +50,8 @@ from tissue.contact.base import ContactMethod
 from tissue.contact.fe_model import FEContactModel
 from tissue.contact.penalty import PenaltyTerm, augmented_step, default_stiffness_n_per_m
 from tissue.errors import ConfigError
-from tissue.integrator import IntegrationMode
 from tissue.mesh import boundary_faces
+from tissue.sim.integrator import IntegrationMode
 from tissue.status import StepStatus
 from tissue.wrench_stiffness import ContactConstraints
 

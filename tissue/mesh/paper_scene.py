@@ -5,7 +5,7 @@ surface, fixed nodes, probe geometry, tracked probe poses for two lesions). prob
 not ship them (no licence is stated); where a copy exists -- ``../shared/paper-scene`` in
 this project -- :func:`load_paper_scene` reads it exactly as laid out, and
 :func:`remesh_paper_scene` re-meshes its closed surface at the 9 levels of
-:data:`tissue.phantom.PHANTOM_LEVELS`. All lengths are metres in the phantom's CT frame,
+:data:`tissue.mesh.phantom.PHANTOM_LEVELS`. All lengths are metres in the phantom's CT frame,
 where the flat base (the chest wall) is at the *largest* z and the skin faces -z.
 
 Layout read (file names are fixed)::
@@ -37,8 +37,8 @@ from numpy.typing import NDArray
 
 from tissue.errors import MeshError
 from tissue.mesh import TetMesh, boundary_faces
-from tissue.mesh_io import load_tet_mesh
-from tissue.phantom import (
+from tissue.mesh.io import load_tet_mesh
+from tissue.mesh.phantom import (
     GENERATOR_VERSION,
     LEVEL_TOLERANCE,
     cached_mesh,
@@ -342,7 +342,7 @@ def _generate_remesh(
         fixed_nodes=fixed,
         name=f"paper_scene_{level}",
         metadata={
-            "generator": "tissue.paper_scene.remesh_paper_scene",
+            "generator": "tissue.mesh.paper_scene.remesh_paper_scene",
             "generator_version": GENERATOR_VERSION,
             "level": level,
             "surface_sha256": stl_sha,

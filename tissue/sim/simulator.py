@@ -24,24 +24,24 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from tissue.elasticity import AntiLocking, Elasticity
 from tissue.errors import ConfigError, TissueInputError, check_setting_names
-from tissue.frames import NodeFrames
-from tissue.integrator import (
+from tissue.fem.elasticity import AntiLocking, Elasticity
+from tissue.fem.material import TissueMaterials
+from tissue.mesh import TetMesh, check_rigid_motion_removed, node_dofs
+from tissue.sim.frames import NodeFrames
+from tissue.sim.integrator import (
     EnergyTerm,
     ImplicitIntegrator,
     IntegrationMode,
     IntegratorConfig,
     StepOutcome,
 )
-from tissue.material import TissueMaterials
-from tissue.mesh import TetMesh, check_rigid_motion_removed, node_dofs
-from tissue.solvers import SERIAL_STEP_UNKNOWNS, LinearSolverConfig
+from tissue.sim.solvers import SERIAL_STEP_UNKNOWNS, LinearSolverConfig
 from tissue.status import StepStatus
 from tissue.threads import one_thread_below, thread_policy
 
 #: Robust mode's inversion barrier: below this volume ratio a tet's energy rises without
-#: bound (:class:`tissue.elasticity.Elasticity`). A tissue tet at nu = 0.49 keeps far more
+#: bound (:class:`tissue.fem.elasticity.Elasticity`). A tissue tet at nu = 0.49 keeps far more
 #: than a tenth of its volume under any physical compression, so the barrier leaves those
 #: untouched; it acts where a Dirichlet condition or a point-like contact on a
 #: coarse mesh flattens a tet: measured on the 1,363-tet phantom (lesion 2, prescribed
@@ -63,7 +63,7 @@ class SimulationConfig:
         anti_locking: ``none`` or ``anp`` (average nodal pressure against volumetric locking).
         project_psd: project element tangents to PSD; None: robust yes, paper no.
         inversion_barrier: the volume ratio J below which a barrier keeps tets from
-            inverting (see :class:`tissue.elasticity.Elasticity`); None:
+            inverting (see :class:`tissue.fem.elasticity.Elasticity`); None:
             :data:`ROBUST_INVERSION_BARRIER` in robust mode, 0 (off, the law as published) in
             paper mode.
         rayleigh_mass: r_M [1/s]. rayleigh_stiffness: r_K [s].
@@ -328,7 +328,7 @@ class TissueSimulator:
         Node i ends the next step(s) on the plane through ``points[i]`` with normal
         ``normals[i]`` and is free to slide within it: a frictionless contact with that plane
         (the integrator solves the step in frames whose first axis is the normal; see
-        :mod:`tissue.frames`). The reaction at such a node lies along its normal.
+        :mod:`tissue.sim.frames`). The reaction at such a node lies along its normal.
 
         Args:
             nodes: node indices, (k,), unique, none of them fixed.
@@ -519,7 +519,7 @@ class TissueSimulator:
 
     def export_vtu(self, path: str | Path) -> Path:
         """Write the deformed mesh (displacement as point data) for ParaView; returns the path."""
-        from tissue.mesh_io import write_mesh
+        from tissue.mesh.io import write_mesh
 
         return write_mesh(self.mesh, path, positions=self._positions)
 

@@ -47,10 +47,10 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from tissue.choices import Choice
-from tissue.elasticity import Elasticity, ElasticState
 from tissue.errors import ConfigError
-from tissue.frames import NodeFrames, find_column
-from tissue.solvers import (
+from tissue.fem.elasticity import Elasticity, ElasticState
+from tissue.sim.frames import NodeFrames, find_column
+from tissue.sim.solvers import (
     ConstrainedSystem,
     LinearSolver,
     LinearSolverConfig,
@@ -255,7 +255,7 @@ class IncrementalPotential:
     D = r_M M + r_K K_rest (the rest stiffness: constant, PSD, no assembly per step).
     Quasi-static: E(y) = Psi(y) + sum(terms) - f_ext . y.
 
-    With node ``frames`` the unknown is z = Q y (see :mod:`tissue.frames`): ``evaluate``,
+    With node ``frames`` the unknown is z = Q y (see :mod:`tissue.sim.frames`): ``evaluate``,
     ``hessian_system``, ``start``, ``dofs`` and ``targets`` are all in those coordinates.
     """
 
@@ -671,7 +671,7 @@ class ImplicitIntegrator:
             targets: their coordinates at the end of the step [m], (k,).
             terms: extra energy terms (penalty contact) active during the step.
             frames: node frames; the dofs of framed nodes (3·node + local axis) and their
-                targets are then along the frames' axes (see :mod:`tissue.frames`).
+                targets are then along the frames' axes (see :mod:`tissue.sim.frames`).
         """
         start = time.perf_counter()
         if self.config.mode is IntegrationMode.PAPER:

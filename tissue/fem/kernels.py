@@ -1,6 +1,6 @@
 """Numba kernels for linear-tet hyperelasticity: element pass, row-parallel assembly, ANP.
 
-This module holds the hot loops behind :class:`tissue.elasticity.Elasticity`; it has no
+This module holds the hot loops behind :class:`tissue.fem.elasticity.Elasticity`; it has no
 public API of its own (the class is the contract). Conventions:
 
 * ``grads[e, a]`` is the rest gradient of shape function a of tet e, dN_a/dX [1/m], so

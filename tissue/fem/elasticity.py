@@ -9,7 +9,7 @@ array for the same ``indices``/``indptr`` arrays.
 Kinematics: linear tets with one integration point, F = Ds Dm^-1 (Dm^-1 and the rest
 volumes stored), node-major DOFs (3 node + axis).
 
-Laws (:class:`tissue.material.MaterialLaw`), both written W(F) = mu/2 (I_C - 3) + psi(J):
+Laws (:class:`tissue.fem.material.MaterialLaw`), both written W(F) = mu/2 (I_C - 3) + psi(J):
 
 * ``stable``: psi = lam'/2 (J - alpha)^2 - mu^2/(2 lam'), lam' = lam + mu,
   alpha = 1 + mu/lam' (Smith, de Goes & Kim 2018, ACM TOG 37(2):12; origin barrier removed
@@ -28,7 +28,7 @@ Burton (1998, Commun Numer Meth Eng 14:437-449); see :class:`Elasticity` for the
 PSD projection (``project_psd=True``): the negative eigenvalues of every tet's dP/dF are
 clamped to zero using the analytic eigensystem of Smith et al. (2018), so that each
 element Hessian V B^T (dP/dF) B is positive semi-definite; see
-:func:`tissue.fem_kernels._negative_modes`.
+:func:`tissue.fem.kernels._negative_modes`.
 """
 
 from __future__ import annotations
@@ -41,10 +41,10 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from tissue import fem_kernels as kern
 from tissue.choices import Choice
 from tissue.errors import TissueInputError
-from tissue.material import MaterialLaw, TissueMaterials
+from tissue.fem import kernels as kern
+from tissue.fem.material import MaterialLaw, TissueMaterials
 from tissue.mesh import TetMesh
 
 
@@ -135,7 +135,7 @@ class Elasticity:
         inversion_barrier: (stable law) a volume ratio J_b in [0, 1): below it every tet
             gains the barrier (mu + lam) (-(J - J_b)^2 ln(J / J_b)), which grows without
             bound as J -> 0 and makes J <= 0 an infinite energy, so that a line search never
-            accepts an inverted tet (see :func:`tissue.fem_kernels.element_pass`); 0 (the
+            accepts an inverted tet (see :func:`tissue.fem.kernels.element_pass`); 0 (the
             default) leaves the law as published. The stable law is finite for inverted tets
             by design; the barrier is what keeps a robust solve's tets uninverted when a
             Dirichlet condition or a point-like contact drives a coarse tet flat.

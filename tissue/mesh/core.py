@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from tissue.embedding import BarycentricEmbedding, embed_points
 from tissue.errors import MeshError
+from tissue.mesh.embedding import BarycentricEmbedding, embed_points
 
 # A tissue phantom larger than this [m] is almost certainly given in millimetres.
 _LARGEST_PLAUSIBLE_EXTENT_M = 2.0

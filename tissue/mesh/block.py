@@ -9,7 +9,7 @@ from numpy.typing import NDArray
 
 from tissue.errors import MeshError
 from tissue.mesh import TetMesh
-from tissue.mesh_io import nodes_on_plane
+from tissue.mesh.io import nodes_on_plane
 
 # Kuhn (Freudenthal) split of the unit cube into six positively oriented tets that share the
 # main diagonal 0-7; neighbouring cubes then agree on every face, so the mesh is conforming.

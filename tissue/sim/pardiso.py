@@ -1,4 +1,4 @@
-"""MKL Pardiso, called directly: the sparse direct solver behind ``tissue.solvers``' direct
+"""MKL Pardiso, called directly: the sparse direct solver behind ``tissue.sim.solvers``' direct
 and ``reuse`` solvers.
 
 pypardiso is the dependency that installs MKL from wheels with pip alone (and the fallback

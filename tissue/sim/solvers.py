@@ -13,7 +13,7 @@ Solvers:
   iterations are far from converged; the report says how far (``relative_residual``).
   Elasticity matrices are made of 3x3 node blocks: CG then multiplies with the upper
   blocks only (half the memory traffic, in double precision).
-* ``direct``: a sparse Cholesky-type factorisation. Intel MKL Pardiso (:mod:`tissue.pardiso`:
+* ``direct``: a sparse Cholesky-type factorisation. Intel MKL Pardiso (:mod:`tissue.sim.pardiso`:
   located through ``pypardiso``, which installs from wheels with pip alone, and called
   directly; SPD mode),
   with a symmetric-indefinite factorisation as fallback when the matrix is not positive
@@ -46,9 +46,9 @@ from numpy.typing import NDArray
 
 from tissue.choices import Choice
 from tissue.errors import ConfigError
-from tissue.frames import FrameChange, NodeFrames, find_column
 from tissue.mesh import node_dofs
-from tissue.pardiso import (
+from tissue.sim.frames import FrameChange, NodeFrames, find_column
+from tissue.sim.pardiso import (
     PardisoError,
     PardisoFactorization,
     PardisoInstance,
@@ -352,7 +352,7 @@ def _jacobi_pcg(
 
 @numba.njit(cache=True)
 def _node_block_columns(indptr, indices, columns):  # pragma: no cover - compiled
-    """Whether the pattern is node-blocked (layout of :mod:`tissue.fem_kernels`).
+    """Whether the pattern is node-blocked (layout of :mod:`tissue.fem.kernels`).
 
     That is: rows 3b, 3b+1, 3b+2 share one column list made of whole triples 3c, 3c+1,
     3c+2 (c ascending). Writes the first column 3c of each block to ``columns`` (nnz / 9,).
@@ -1276,8 +1276,8 @@ class _ConstrainedSince:
     not corrected: CG absorbs them.
 
     A system written in other node frames than F's matrix (prescribed nodes sliding on the
-    probe: :mod:`tissue.frames`) is preconditioned by G = P F^-1 P^T, P the change of
-    coordinates (:class:`tissue.frames.FrameChange`), corrected in the same form with
+    probe: :mod:`tissue.sim.frames`) is preconditioned by G = P F^-1 P^T, P the change of
+    coordinates (:class:`tissue.sim.frames.FrameChange`), corrected in the same form with
     Y = G E_D. A dof d of a node whose frame turned is the direction P^T e_d in F's
     coordinates: its column of Y combines the node's three columns of F^-1 (kept like the
     others, so a frame that turns every step costs no new solves; Y itself is formed again,

@@ -427,7 +427,7 @@ def cached_mesh(path: Path, generate: Callable[[], TetMesh]) -> TetMesh:
     Returning what was read back makes a fresh mesh and a cache hit identical. A cache
     directory that cannot be written costs the cache, not the mesh (a warning says so).
     """
-    from tissue.mesh_io import load_mesh_npz, save_mesh_npz
+    from tissue.mesh.io import load_mesh_npz, save_mesh_npz
 
     if path.is_file():
         try:
@@ -671,7 +671,7 @@ def _generate_phantom(level: int, spec: PhantomSpec, verbose: bool) -> TetMesh:
         region_names=names,
         name=f"breast_phantom_{level}",
         metadata={
-            "generator": "tissue.phantom.breast_phantom",
+            "generator": "tissue.mesh.phantom.breast_phantom",
             "generator_version": GENERATOR_VERSION,
             "level": level,
             "spec_hash": spec.content_hash(),
