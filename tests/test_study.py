@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.study.report import complete_front, pareto_front, stability_table, valid_errors
 from agents.study.runner import RESULTS_FILE, read_results, run_study
 from agents.study.spec import Cell, StudyConfig, StudySpec
+from agents.study.tables import complete_front, pareto_front, stability_table, valid_errors
 from tissue.contact.base import ContactMethod
 from tissue.errors import ConfigError
 

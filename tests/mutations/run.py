@@ -120,7 +120,7 @@ MUTATIONS = (
     ),
     Mutation(
         "the study scores each profile on its own depths",
-        "agents/study/report.py",
+        "agents/study/tables.py",
         '            lesion_case: tuple[int, ...] = (record["level"], record["lesion"])',
         '            lesion_case = (record["level"], record["lesion"], record["config"])',
         ("tests/test_study.py", "-k", "same_depths"),
