@@ -1,0 +1,421 @@
+"""The XPBD tissue as a contact model: :class:`PBDContact` builds the constraints and runs a step.
+
+Construction renumbers tets and nodes for the sweep (see
+:func:`~tissue.pbd.two_domain_order`), builds masses, compliances and contact points, and
+loads every compiled kernel; :meth:`PBDContact._advance` runs a tissue step's substeps and
+turns the contact multipliers into forces (see :mod:`tissue.pbd`).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numba as nb
+import numpy as np
+from numpy.typing import NDArray
+
+# The package itself, for the sweep kernels the step calls: looked up there at each step so
+# that replacing ``tissue.pbd._project_tets`` (as the failure tests do) reaches the step.
+import tissue.pbd as _package
+from tissue.contact.base import ContactMethod, ContactModel
+from tissue.errors import ConfigError, TissueInputError
+from tissue.fem.material import TissueMaterials
+from tissue.mesh import TetMesh
+from tissue.pbd.config import PBDConfig
+from tissue.pbd.contact import (
+    _contact_points,
+    _contact_zone_sweeps,
+    _points_near,
+    _project_contacts,
+)
+from tissue.pbd.substep import _end_substep, _start_substep
+from tissue.pbd.sweep import two_domain_order
+from tissue.pbd.volume import (
+    PARALLEL_SCREEN_TETS,
+    _count_below_volume_floor,
+    _enforce_volume_floor,
+    _min_volume_ratio,
+)
+from tissue.probe import ProbeShape, unit_quat_to_matrix
+from tissue.status import StepStatus
+
+
+class PBDContact(ContactModel):
+    """An XPBD tetrahedral tissue pressed by a rigid probe (the paper's PBD baseline).
+
+    A second tissue backend behind the contact-model step interface: :meth:`step` moves the
+    probe, runs ``substeps`` XPBD substeps and returns the contact wrench from the contact
+    multipliers (see :mod:`tissue.pbd` for the model, the force and the calibration).
+
+    Args:
+        mesh: the tissue mesh; its fixed nodes are pinned.
+        probe_shape: the rigid probe's geometry.
+        materials: per-region materials (mu, lambda, density); default tissue E = 2850 Pa,
+            nu = 0.49, lesions 4 x stiffer.
+        config: the XPBD settings; default the calibrated :class:`PBDConfig`.
+
+    Limitations:
+        Not converged per step: XPBD with a few sweeps is softer than the material and only
+        approaches the FE through the calibrated compliance scales, which hold for the
+        calibration's mesh resolution, substep count and loading; other meshes or settings
+        need :func:`~tissue.pbd_calibration.calibrate_pbd` again (changing the substeps alone
+        moves the force by tens of percent). Too few substeps let the hard contact crush the
+        surface tets (5 substeps end INVERTED at level 4126). With the defaults contact acts
+        on the volume's boundary nodes, so a collision surface that bulges between them (or
+        lies outside the volume) is not held; ``contact_spacing_m`` and ``skin_contact`` add
+        points between them. Contact planes are taken once per substep from the exact SDF at
+        the predicted positions, so the probe must move less than about half its thickness
+        per substep (1.3 mm for the linear face, i.e. about 0.6 m/s at the defaults) or
+        points can tunnel through it. Frictionless only. Forces are time averages over the
+        step and include inertia during fast motion. Stresses are not reported. About 3 ms
+        per step at 4.1k tets with the defaults (one thread); the robust configuration's
+        sweep uses two threads.
+    """
+
+    method = ContactMethod.PBD
+
+    def __init__(
+        self,
+        mesh: TetMesh,
+        probe_shape: ProbeShape,
+        materials: TissueMaterials | None = None,
+        config: PBDConfig | None = None,
+    ) -> None:
+        if not isinstance(mesh, TetMesh):
+            raise TissueInputError(
+                f"mesh must be a tissue.TetMesh; got {type(mesh).__name__} "
+                "(load files with tissue.load_tet_mesh)"
+            )
+        if config is not None and not isinstance(config, PBDConfig):
+            raise ConfigError(f"config must be a PBDConfig; got {type(config).__name__}")
+        super().__init__(mesh, probe_shape)
+        self.materials = materials or TissueMaterials()
+        self.config = config or PBDConfig()
+        cfg = self.config
+
+        # The step runs in its own numbering (see two_domain_order): the tets in sweep order,
+        # two node-disjoint domains and their separator, and the nodes in the order the tets
+        # first use them, so that the two threads sweeping the domains write to separate
+        # memory (in mesh numbering they share cache lines, and two threads were slower than
+        # one). The state (_x, _v) and everything public stay in mesh numbering.
+        order, self._sweep_bounds = two_domain_order(mesh.nodes, mesh.tets, cfg.sweep_domains)
+        first_use = np.unique(mesh.tets[order].ravel(), return_index=True)
+        used_in_order = first_use[0][np.argsort(first_use[1])]
+        unused = np.setdiff1d(np.arange(mesh.node_count), used_in_order)
+        self._node_order = np.concatenate([used_in_order, unused]).astype(np.int64)
+        self._step_node_of_mesh = np.empty(mesh.node_count, dtype=np.int64)
+        self._step_node_of_mesh[self._node_order] = np.arange(mesh.node_count)
+        nodes = mesh.nodes[self._node_order]
+        tets = np.ascontiguousarray(self._step_node_of_mesh[mesh.tets[order]])
+        self._tets = tets
+
+        edges = np.stack([nodes[tets[:, k]] - nodes[tets[:, 0]] for k in (1, 2, 3)], axis=2)
+        self._dm_inv = np.ascontiguousarray(np.linalg.inv(edges))
+        self._inv_det_dm = 1.0 / np.linalg.det(edges)
+        self._rest_volume = mesh.tet_volumes()[order]
+        mu, lam, rho = self.materials.per_tet(mesh.region[order])
+        lam_stable = lam + mu
+        mass = np.bincount(
+            tets.ravel(),
+            weights=np.repeat(rho * self._rest_volume / 4.0, 4),
+            minlength=mesh.node_count,
+        )
+        self.lumped_mass = mass[self._step_node_of_mesh]  # mesh numbering
+        inv_mass = np.zeros(mesh.node_count)
+        free = mass > 0.0
+        inv_mass[free] = 1.0 / mass[free]
+        inv_mass[self._step_node_of_mesh[mesh.fixed_nodes]] = 0.0
+        self._inv_mass = inv_mass
+        h = cfg.substep_dt
+        mu_model = mu / cfg.deviatoric_compliance_scale
+        lam_model = lam_stable / cfg.volume_compliance_scale
+        self._alpha_dev = 1.0 / (mu_model * self._rest_volume) / h**2
+        self._alpha_hyd = 1.0 / (lam_model * self._rest_volume) / h**2
+        # The rest offset must use the scaled moduli too: only then do the two constraints'
+        # forces cancel at rest (mu I + lambda' (1 - gamma) I = 0).
+        self._gamma = 1.0 + mu_model / lam_model
+        self._contact_alpha = cfg.contact_compliance_m_per_n / h**2
+        point_nodes, self._point_weights = _contact_points(
+            mesh, self.surface, cfg.contact_spacing_m, cfg.skin_contact
+        )
+        self._point_nodes = point_nodes  # mesh numbering, for the public positions
+        self._step_point_nodes = np.ascontiguousarray(self._step_node_of_mesh[point_nodes])
+        self._lam_dev = np.zeros(mesh.tet_count)
+        self._lam_hyd = np.zeros(mesh.tet_count)
+        self._all_tets = np.arange(mesh.tet_count, dtype=np.int64)
+        # Node -> incident tets (CSR, step numbering), for the contact zone.
+        self._node_tets = np.argsort(tets.ravel(), kind="stable").astype(np.int64) // 4
+        self._node_tet_start = np.concatenate(
+            [[0], np.cumsum(np.bincount(tets.ravel(), minlength=mesh.node_count))]
+        ).astype(np.int64)
+        self._reset_tissue()
+        self._load_kernels()
+
+    def _load_kernels(self) -> None:
+        """Call every compiled kernel of a step once, on scratch arrays of the types the step
+        passes, so that the one-time work of a process's first call (numba loading the
+        kernel from its cache, OpenMP starting the sweep's second thread; the probe shape's
+        cached bounds) is done here, when the model is built, as the FE methods' integrator
+        does in ``prepare``: otherwise the first step takes many times the later ones.
+        Nothing of the model's state is touched."""
+        cfg = self.config
+        x = self._x[self._node_order]
+        v, x_previous, support_step, support = (np.zeros_like(x) for _ in range(4))
+        lam_dev, lam_hyd = np.zeros_like(self._lam_dev), np.zeros_like(self._lam_hyd)
+        h = cfg.substep_dt
+        _start_substep(x, v, x_previous, 1.0, h, lam_dev, lam_hyd, support_step)
+        points = self._point_nodes.shape[0]
+        near, near_positions = np.empty(points, dtype=np.int64), np.empty((points, 3))
+        origin, rotation = np.zeros(3), np.eye(3)
+        _points_near(
+            x, self._step_point_nodes, self._point_weights, origin, 0.0, rotation, origin,
+            origin, near, near_positions,
+        )  # fmt: skip
+        self.probe.shape.signed_distance(np.zeros((1, 3)))
+        self.probe.shape.local_bounds_m()  # cached on the shape (built from its surface)
+        tissue_args = (
+            x, self._inv_mass, self._tets, self._dm_inv, self._alpha_dev, self._alpha_hyd,
+            self._gamma, lam_dev, lam_hyd, support_step,
+        )  # fmt: skip
+        no_tets = self._all_tets[:0]
+        _package._project_tets(*tissue_args, no_tets)
+        _package._project_tets_two_domains(*tissue_args, no_tets, np.zeros(4, dtype=np.int64))
+        no_contacts = np.zeros(0, dtype=np.int64)
+        contact_args = (
+            self._step_point_nodes, self._point_weights, no_contacts, np.zeros((0, 3)),
+            np.zeros((0, 3)), self._contact_alpha, np.zeros(0),
+        )  # fmt: skip
+        _project_contacts(x, self._inv_mass, *contact_args)
+        _contact_zone_sweeps(
+            *tissue_args, *contact_args, self._node_tet_start, self._node_tets, self._all_tets,
+            cfg.contact_zone_iterations,
+        )  # fmt: skip
+        _count_below_volume_floor(x, self._tets, self._inv_det_dm, cfg.volume_floor)
+        _enforce_volume_floor(
+            x, self._inv_mass, self._tets, self._dm_inv, self._inv_det_dm, 0.0, support_step
+        )
+        _end_substep(
+            x, x_previous, v, h, support_step, support, no_contacts, np.zeros((0, 3)),
+            np.zeros(0), np.zeros((points, 3)),
+        )  # fmt: skip
+        _min_volume_ratio(x, self._tets, self._rest_volume)
+
+    # ------------------------------------------------------------------ interface
+
+    def contact_points_world(self) -> NDArray[np.float64]:
+        """The points PBD contact acts on [m], (k, 3) (see :func:`_contact_points`)."""
+        return np.einsum("kj,kjd->kd", self._point_weights, self._x[self._point_nodes])
+
+    @property
+    def node_positions(self) -> NDArray[np.float64]:
+        """Current node positions [m], (node_count, 3) (a read-only view)."""
+        view = self._x.view()
+        view.flags.writeable = False
+        return view
+
+    @property
+    def node_velocities(self) -> NDArray[np.float64]:
+        """Current node velocities [m/s], (node_count, 3) (a read-only view)."""
+        view = self._v.view()
+        view.flags.writeable = False
+        return view
+
+    @property
+    def dt(self) -> float:
+        return self.config.tissue_dt
+
+    def _reset_tissue(self) -> None:
+        self._x = self.mesh.nodes.copy()
+        self._v = np.zeros_like(self._x)
+        self._previous_pose: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+
+    def kinetic_energy_j(self) -> float:
+        """Kinetic energy of the tissue now [J]."""
+        return 0.5 * float(np.sum(self.lumped_mass[:, None] * self._v**2))
+
+    def _snapshot_tissue(self) -> dict[str, Any]:
+        before = self._previous_pose
+        return {
+            "x": self._x.copy(),
+            "v": self._v.copy(),
+            "previous_pose": None if before is None else (before[0].copy(), before[1].copy()),
+            "lam_dev": self._lam_dev.copy(),
+            "lam_hyd": self._lam_hyd.copy(),
+        }
+
+    def _restore_tissue(self, snapshot: dict[str, Any]) -> None:
+        self._x = np.array(snapshot["x"], dtype=np.float64)
+        self._v = np.array(snapshot["v"], dtype=np.float64)
+        before = snapshot["previous_pose"]
+        self._previous_pose = None if before is None else (before[0].copy(), before[1].copy())
+        self._lam_dev[:] = snapshot["lam_dev"]
+        self._lam_hyd[:] = snapshot["lam_hyd"]
+
+    def _advance(
+        self, step_s: float
+    ) -> tuple[StepStatus, NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
+        cfg = self.config
+        h = step_s / cfg.substeps
+        # The compliances were divided by the nominal substep squared when the model was
+        # built; a shorter step (a sub-motion, see ContactModel.step) rescales them.
+        scale = 1.0 if step_s == cfg.tissue_dt else (cfg.substep_dt / h) ** 2
+        alpha_dev = self._alpha_dev if scale == 1.0 else self._alpha_dev * scale
+        alpha_hyd = self._alpha_hyd if scale == 1.0 else self._alpha_hyd * scale
+        contact_alpha = self._contact_alpha * scale
+        end_position = self.probe.position_world.copy()
+        end_quat = self.probe.quat_wxyz.copy()
+        start_position, start_quat = self._previous_pose or (end_position, end_quat)
+        if float(np.dot(start_quat, end_quat)) < 0.0:
+            start_quat = -start_quat  # the short way round for nlerp
+        x = self._x[self._node_order]  # step numbering (a copy)
+        v = self._v[self._node_order]
+        x_previous = np.empty_like(x)
+        point_count = self._point_nodes.shape[0]
+        near = np.empty(point_count, dtype=np.int64)
+        near_positions = np.empty((point_count, 3))
+        damping = math.exp(-cfg.damping_per_s * h)
+        impulse = np.zeros((point_count, 3))  # sum over substeps of n lambda / h [N s]
+        support = np.zeros((self.mesh.node_count, 3))
+        support_step = np.zeros_like(support)
+        shape = self.probe.shape
+        reach = shape.bounding_radius_m + cfg.contact_margin_m
+        bounds = shape.local_bounds_m()
+        low = bounds[0] - cfg.contact_margin_m
+        high = bounds[1] + cfg.contact_margin_m
+        max_contacts = 0
+        detect_s = 0.0
+        floor_hits = 0
+        # The two-domain sweep is the one-thread sweep in the same order, bit for bit; on one
+        # thread the plain kernel skips the parallel launch.
+        project_tets = _package._project_tets
+        project_tets_two_domains = _package._project_tets_two_domains
+        two_threads = cfg.sweep_domains == 2 and nb.get_num_threads() > 1
+        screen_first = two_threads and self.mesh.tet_count >= PARALLEL_SCREEN_TETS
+        tissue_args = (
+            x, self._inv_mass, self._tets, self._dm_inv, alpha_dev, alpha_hyd,
+            self._gamma, self._lam_dev, self._lam_hyd, support_step,
+        )  # fmt: skip
+        # The probe's pose at each substep's end, all at once (nlerp, each quaternion
+        # normalised as quat_to_matrix does). The norms stay one 4-vector at a time:
+        # np.linalg.norm over rows rounds differently in the last bit.
+        fractions = np.arange(1, cfg.substeps + 1) / cfg.substeps
+        positions = (1.0 - fractions)[:, None] * start_position + fractions[:, None] * end_position
+        quats = (1.0 - fractions)[:, None] * start_quat + fractions[:, None] * end_quat
+        norms = np.array([np.linalg.norm(quat) for quat in quats])
+        rotations = np.ascontiguousarray(unit_quat_to_matrix(quats / norms[:, None]))
+        for substep in range(cfg.substeps):
+            position, rotation = positions[substep], rotations[substep]
+            _start_substep(x, v, x_previous, damping, h, self._lam_dev, self._lam_hyd, support_step)
+            tic = time.perf_counter()
+            contact_points, normals, anchors = self._detect(
+                x, position, rotation, shape, (reach, low, high), near, near_positions
+            )
+            detect_s += time.perf_counter() - tic
+            lam_contact = np.zeros(contact_points.shape[0])
+            contact_args = (
+                self._step_point_nodes, self._point_weights, contact_points, normals, anchors,
+                contact_alpha, lam_contact,
+            )  # fmt: skip
+            for sweep in range(cfg.iterations):
+                if two_threads:
+                    project_tets_two_domains(*tissue_args, self._all_tets, self._sweep_bounds)
+                else:
+                    project_tets(*tissue_args, self._all_tets)
+                if sweep < cfg.iterations - 1 and contact_points.size:
+                    _project_contacts(x, self._inv_mass, *contact_args)
+            if contact_points.size:
+                # The last full sweep's contacts, then the zone's sweeps and contacts.
+                _contact_zone_sweeps(
+                    *tissue_args, *contact_args, self._node_tet_start, self._node_tets,
+                    self._all_tets, cfg.contact_zone_iterations,
+                )  # fmt: skip
+            if cfg.volume_floor > 0.0 and not (
+                screen_first
+                and _count_below_volume_floor(x, self._tets, self._inv_det_dm, cfg.volume_floor)
+                == 0
+            ):
+                floor_hits += _enforce_volume_floor(
+                    x,
+                    self._inv_mass,
+                    self._tets,
+                    self._dm_inv,
+                    self._inv_det_dm,
+                    cfg.volume_floor,
+                    support_step,
+                )
+            pressing = _end_substep(
+                x, x_previous, v, h, support_step, support, contact_points, normals,
+                lam_contact, impulse,
+            )  # fmt: skip
+            max_contacts = max(max_contacts, pressing)
+
+        diagnostics: dict[str, Any] = {
+            "substeps": cfg.substeps,
+            "iterations": cfg.iterations,
+            "active_contacts_max": max_contacts,
+            "contact_detection_ms": 1e3 * detect_s,
+            "volume_floor_projections": floor_hits,
+        }
+        self._previous_pose = (end_position, end_quat)
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
+            diagnostics["support_force_n"] = np.full(3, np.nan)
+            # Nothing non-finite is stored: the state before the step stays.
+            return StepStatus.DIVERGED, np.zeros((0, 3)), np.zeros((0, 3)), diagnostics
+        min_ratio = float(_min_volume_ratio(x, self._tets, self._rest_volume))
+        self._x = x[self._step_node_of_mesh]  # back to mesh numbering
+        self._v = v[self._step_node_of_mesh]
+        diagnostics["min_volume_ratio"] = min_ratio
+        # Force of the base on the tissue: minus the elastic constraint forces at fixed nodes,
+        # averaged over the step (impulse / tissue_dt).
+        diagnostics["support_force_n"] = -support.sum(axis=0) / step_s
+        in_contact = np.flatnonzero(np.any(impulse != 0.0, axis=1))
+        points_world = self._positions(self._x)[in_contact]
+        forces = -impulse[in_contact] / step_s
+        status = StepStatus.INVERTED if not min_ratio > 0.0 else StepStatus.OK
+        return status, points_world, forces, diagnostics
+
+    @property
+    def contact_point_positions(self) -> NDArray[np.float64]:
+        """Current positions of the points the PBD contact acts on [m], (k, 3)."""
+        return self._positions(self._x)
+
+    def _positions(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.einsum("pk,pka->pa", self._point_weights, x[self._point_nodes])
+
+    def _detect(
+        self,
+        x: NDArray[np.float64],
+        position: NDArray[np.float64],
+        rotation: NDArray[np.float64],
+        shape: ProbeShape,
+        broad_phase: tuple[float, NDArray[np.float64], NDArray[np.float64]],
+        near: NDArray[np.int64],
+        near_positions: NDArray[np.float64],
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+        """Contact candidates at predicted positions, for a probe at (position, rotation).
+
+        ``broad_phase``: :func:`_points_near`'s reach [m] and probe-frame box (low, high
+        [m], (3,) each), both grown by the contact margin. ``near`` (point_count,) and
+        ``near_positions`` (point_count, 3) are scratch for :func:`_points_near`, allocated
+        once per step.
+
+        Returns:
+            surface point indices (k,), probe outward normals (k, 3) and tangent-plane anchor
+            points [m] (k, 3) (the closest probe surface points), world frame.
+        """
+        reach, low, high = broad_phase
+        count = _points_near(
+            x, self._step_point_nodes, self._point_weights, position, reach, rotation, low, high,
+            near, near_positions,
+        )  # fmt: skip
+        if count == 0:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3))
+        points = near_positions[:count]
+        local = (points - position) @ rotation
+        distance, normal_local = shape.signed_distance(local)
+        close = distance < self.config.contact_margin_m
+        normals = np.ascontiguousarray(normal_local[close] @ rotation.T)
+        anchors = points[close] - distance[close, None] * normals
+        return near[:count][close], normals, np.ascontiguousarray(anchors)
