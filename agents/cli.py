@@ -7,6 +7,7 @@ and a message naming the bad value when they are wrong.
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -234,6 +235,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``probegym`` console script."""
     parser = _build_parser()
     args = parser.parse_args(argv)
+    # How the run was asked for, as benchmarks record it beside their tables.
+    args.command_line = "probegym " + shlex.join(list(argv) if argv is not None else sys.argv[1:])
     try:
         _check_outputs(args)  # before any work: a bad path is a one-line error, exit 2
         # The process's thread policy, explicitly (TBB, MKL sequential; see tissue.threads).
@@ -327,7 +330,7 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
         if args.repeats < 1:
             parser.error(f"--repeats must be >= 1; got {args.repeats}")
-        run_tissue_benchmark(levels=args.levels, repeats=args.repeats, json_path=args.json)
+        run_tissue_benchmark(args.levels, args.repeats, args.json, command=args.command_line)
         return 0
     if args.command == "bench" and args.bench == "contact":
         from agents.contact_benchmark import run_contact_benchmark
@@ -338,7 +341,7 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         modes = _names(args.modes, IntegrationMode.parse)
         if not modes:
             parser.error("--profile needs one or more of paper,robust; got nothing")
-        run_contact_benchmark(args.levels, methods, modes, args.json)
+        run_contact_benchmark(args.levels, methods, modes, args.json, command=args.command_line)
         return 0
     if args.command == "bench" and args.bench == "env":
         from agents.env_benchmark import run_env_benchmark
@@ -349,14 +352,16 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         profiles = _names(args.profiles, Profile.parse)
         if not profiles:
             parser.error("--profile needs one or more of paper,robust; got nothing")
-        run_env_benchmark(_names(args.ids), methods, profiles, args.levels, args.json)
+        run_env_benchmark(
+            _names(args.ids), methods, profiles, args.levels, args.json, command=args.command_line
+        )
         return 0
     if args.command == "bench" and args.bench == "peer":
         from agents.peer_benchmark import run_peer_benchmark
 
         if not args.sim_seconds > 0:
             parser.error(f"--sim-seconds must be > 0; got {args.sim_seconds}")
-        run_peer_benchmark(args.levels, args.json, args.sim_seconds)
+        run_peer_benchmark(args.levels, args.json, args.sim_seconds, command=args.command_line)
         return 0
     parser.error("unknown command")
     return 2

@@ -46,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.bench_report import BenchRecord, MarkdownTable
 from agents.outputs import write_json
 from agents.tissue_benchmark import print_robust_targets, robust_step_target
 from tissue.contact import make_contact_model
@@ -235,6 +236,39 @@ def _pivot(
     return rows
 
 
+#: The contact benchmark's figures: (caption, record key, scale, format).
+_FIGURES = (
+    ("median step time in contact [ms]", "step_ms", 1.0, ".2f"),
+    ("slowest step in contact [ms]", "step_ms_max", 1.0, ".1f"),
+    ("normal force at the final depth [N]", "force_n", 1.0, ".3f"),
+    ("largest penetration over the run [mm]", "penetration_max_m", 1e3, ".3f"),
+    ("lesion 1 displacement at the final depth [mm]", "lesion1_displacement_m", 1e3, ".2f"),
+)
+
+
+def markdown_tables(records: list[dict[str, Any]], levels: list[int]) -> list[MarkdownTable]:
+    """The printed tables as Markdown: one per figure, method and profile by level."""
+    tets = {r["level"]: r["tets"] for r in records}
+    columns = [f"{level} ({tets[level]:,} tets)" for level in levels if level in tets]
+    rows_of = list(dict.fromkeys((r["method"], r["mode"]) for r in records))
+    tables = []
+    for caption, key, scale, fmt in _FIGURES:
+        table = MarkdownTable(caption, ["method", "profile", *columns])
+        for method, mode in rows_of:
+            cells = []
+            for level in levels:
+                if level not in tets:
+                    continue
+                match = [
+                    r for r in records
+                    if (r["method"], r["mode"], r["level"]) == (method, mode, level)
+                ]  # fmt: skip
+                cells.append(format(match[0][key] * scale, fmt) if match else "-")
+            table.rows.append([method, mode, *cells])
+        tables.append(table)
+    return tables
+
+
 def print_tables(records: list[dict[str, Any]], levels: list[int]) -> None:
     """Print step time, force and penetration per method/mode (rows) and level (columns),
     then the issue's targets against the measurements."""
@@ -242,16 +276,10 @@ def print_tables(records: list[dict[str, Any]], levels: list[int]) -> None:
     header = f"{'method':>10} {'mode':>6} " + " ".join(
         f"{tets.get(level, level):>9}" for level in levels
     )
-    for title, key, scale, fmt in (
-        ("median step time in contact [ms]", "step_ms", 1.0, "9.2f"),
-        ("slowest step in contact [ms]", "step_ms_max", 1.0, "9.1f"),
-        ("normal force at the final depth [N]", "force_n", 1.0, "9.3f"),
-        ("largest penetration over the run [mm]", "penetration_max_m", 1e3, "9.3f"),
-        ("lesion 1 displacement at the final depth [mm]", "lesion1_displacement_m", 1e3, "9.2f"),
-    ):
+    for title, key, scale, fmt in _FIGURES:
         print(f"\n{title} — columns: tets")
         print(header)
-        for row in _pivot(records, levels, key, scale, fmt):
+        for row in _pivot(records, levels, key, scale, "9" + fmt):
             print(row)
     print("\nnon-ok steps:")
     for record in records:
@@ -289,6 +317,7 @@ def run_contact_benchmark(
     modes: list[str],
     json_path: Path,
     steps: int = 50,
+    command: str | None = None,
 ) -> list[dict[str, Any]]:
     """Benchmark every method x mode x level; print tables; write a JSON list of records.
 
@@ -315,6 +344,7 @@ def run_contact_benchmark(
         for mode in modes:
             benchmark_one(method, mode, min(PHANTOM_LEVELS), WARMUP_STEPS)
     records: list[dict[str, Any]] = []
+    provenance = BenchRecord("probegym bench contact: step time, force and penetration", command)
     for level in levels:
         for method in methods:
             for mode in modes:
@@ -331,5 +361,6 @@ def run_contact_benchmark(
                 _annotate_targets(records)
                 _write(records, json_path)  # keep what is measured so far
     print_tables(records, levels)
-    print(f"written: {json_path}")
+    markdown = provenance.write(json_path, markdown_tables(records, levels))
+    print(f"written: {json_path}, {markdown}")
     return records

@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from agents.bench_report import BenchRecord, MarkdownTable, code_revision
 from agents.contact_benchmark import threading_environment
 from agents.outputs import write_json
 
@@ -111,10 +112,12 @@ def run_env_benchmark(
     profiles: list[str] | None,
     levels: list[int] | None,
     json_path: Path,
+    command: str | None = None,
 ) -> list[dict[str, Any]]:
     """Every combination; prints a table and writes the JSON as it goes."""
     records: list[dict[str, Any]] = []
     started = time.strftime("%Y-%m-%dT%H:%M:%S")
+    provenance = BenchRecord("probegym bench env: environment steps per second", command)
     for env_id in env_ids or DEFAULT_IDS:
         for profile in profiles or DEFAULT_PROFILES:
             for level in levels or DEFAULT_LEVELS:
@@ -123,7 +126,29 @@ def run_env_benchmark(
                     records.append(record)
                     _print(record)
                     _write(json_path, records, started)
+    provenance.write(json_path, [_table(records)])
     return records
+
+
+def _table(records: list[dict[str, Any]]) -> MarkdownTable:
+    """One row per run: steps per second against the target, where a step's time goes."""
+    table = MarkdownTable(
+        "env steps per second (median, from CPU time) and a step's parts [ms]",
+        ["env", "contact", "profile", "level (tets)", "steps/s", "target", "tissue",
+         "controller", "robot", "observation", "reset"],
+    )  # fmt: skip
+    for r in records:
+        target = r.get("target_steps_per_s")
+        verdict = (
+            "" if target is None else f"{target:.0f} ({'met' if r['meets_target'] else 'missed'})"
+        )
+        table.rows.append([
+            r["env_id"], r["contact"], r["profile"], f"{r['level']} ({r['tets']:,})",
+            f"{r['steps_per_s']:.0f}", verdict, f"{r['tissue_ms']:.2f}",
+            f"{r['controller_ms']:.2f}", f"{r['robot_ms']:.2f}", f"{r['observation_ms']:.2f}",
+            f"{r['reset_ms']:.2f}",
+        ])  # fmt: skip
+    return table
 
 
 def _print(record: dict[str, Any]) -> None:
@@ -147,6 +172,7 @@ def _write(path: Path, records: list[dict[str, Any]], started: str) -> None:
         "benchmark": "env",
         "started": started,
         "machine": platform.node(),
+        "revision": code_revision(),
         "cpu_count": os.cpu_count(),
         "threads": threading_environment(),
         "records": records,

@@ -72,6 +72,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from agents.bench_report import BenchRecord, MarkdownTable
 from agents.contact_benchmark import threading_environment
 from agents.outputs import write_json
 from tissue.contact import make_contact_model
@@ -478,6 +479,29 @@ def _mm(value: float) -> str:
     return f"{value * 1e3:8.3f}" if math.isfinite(value) else f"{'nan':>8}"
 
 
+def markdown_tables(records: list[dict[str, Any]]) -> list[MarkdownTable]:
+    """Each of our runs against MuJoCo's headline variant: ms of computation per simulated
+    second, the ratio (MuJoCo / ours, the issue's target beside it) and lesion 1's error."""
+    needed = {"paper": 3.0, "robust": 2.0}
+    table = MarkdownTable(
+        f"ms per simulated s (all steps), MuJoCo {MUJOCO_VARIANTS[0].name} / ours, lesion 1 "
+        "error against the quasi-static LM reference [mm]",
+        ["tets", "ours", "ours ms/sim s", "MuJoCo ms/sim s", "ratio", "target", "ours error",
+         "MuJoCo error"],
+    )  # fmt: skip
+    for r in records:
+        for run in r["ours"]:
+            mode = run["mode"]
+            verdict = "met" if run["ratio"] >= needed[mode] else "missed"
+            table.rows.append([
+                f"{r['tets']:,}", f"{run['method']}/{mode}", f"{run['ms_per_sim_s']:.0f}",
+                f"{r['mujoco_ms_per_sim_s']:.0f}", f"{run['ratio']:.2f}",
+                f">= {needed[mode]:.0f} ({verdict})", _mm(run["lesion_error_m"]).strip(),
+                _mm(r["mujoco_lesion_error_m"]).strip(),
+            ])  # fmt: skip
+    return [table]
+
+
 def print_tables(records: list[dict[str, Any]]) -> None:
     """The headline table, then every run of both sides per level, then the targets."""
     print(
@@ -559,7 +583,10 @@ def print_tables(records: list[dict[str, Any]]) -> None:
 
 
 def run_peer_benchmark(
-    levels: list[int] | None, json_path: Path, sim_seconds: float = 1.0
+    levels: list[int] | None,
+    json_path: Path,
+    sim_seconds: float = 1.0,
+    command: str | None = None,
 ) -> list[dict[str, Any]]:
     """Benchmark ours against MuJoCo flex per level; print tables; write a JSON list.
 
@@ -578,6 +605,7 @@ def run_peer_benchmark(
         f"{sim_seconds} s ({platform.processor() or platform.machine()})"
     )
     records: list[dict[str, Any]] = []
+    provenance = BenchRecord("probegym bench peer: ours against MuJoCo's flex", command)
     for level in levels:
         record = benchmark_level(level, sim_seconds)
         records.append(record)
@@ -590,5 +618,6 @@ def run_peer_benchmark(
         # Keep what is measured so far; NaN (a failed run) is written as null.
         write_json(records, json_path, indent=2)
     print_tables(records)
-    print(f"written: {json_path}")
+    markdown = provenance.write(json_path, markdown_tables(records))
+    print(f"written: {json_path}, {markdown}")
     return records

@@ -12,9 +12,11 @@ import platform
 import resource
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from agents.bench_report import BenchRecord, MarkdownTable
 from agents.outputs import write_json
 from tissue.fem.material import TissueMaterials
 from tissue.mesh import top_surface_nodes
@@ -166,7 +168,7 @@ def _paper_system(sim: TissueSimulator, nodes: np.ndarray, depth_m: float) -> Co
 
 
 def run_tissue_benchmark(
-    levels: list[int] | None, repeats: int, json_path: Path
+    levels: list[int] | None, repeats: int, json_path: Path, command: str | None = None
 ) -> list[dict[str, float | int | str]]:
     """Benchmark ``levels`` (default 623 to 26,220 tets); print a table; write JSON."""
     levels = list(levels or DEFAULT_LEVELS)
@@ -180,6 +182,7 @@ def run_tissue_benchmark(
         f"({platform.processor() or platform.machine()})"
     )
     print(header)
+    provenance = BenchRecord(f"probegym bench tissue: medians of {repeats} repeats", command)
     for level in levels:
         record = benchmark_level(level, repeats)
         records.append(record)
@@ -193,8 +196,31 @@ def run_tissue_benchmark(
         json_path.parent.mkdir(parents=True, exist_ok=True)
         write_json(records, json_path, indent=2)  # keep what is measured so far
     print_robust_targets(records, "newton_step_ms", "Newton step")
-    print(f"written: {json_path}")
+    markdown = provenance.write(json_path, [_table(records)])
+    print(f"written: {json_path}, {markdown}")
     return records
+
+
+def _table(records: list[dict[str, Any]]) -> MarkdownTable:
+    """The printed table as Markdown, with the robust step's target where a level has one."""
+    table = MarkdownTable(
+        "per level, times in ms",
+        ["tets", "nodes", "assembly", "paper step", "factorisation", "Newton step",
+         "Newton iterations", "CG25 energy error", "peak MB", "robust step target"],
+    )  # fmt: skip
+    for r in records:
+        target = (
+            f"{r['robust_target_step_ms']:.0f} ({'met' if r['meets_robust_target'] else 'missed'})"
+            if "robust_target_step_ms" in r
+            else ""
+        )
+        table.rows.append([
+            f"{r['tets']:,}", f"{r['nodes']:,}", f"{r['assembly_ms']:.2f}",
+            f"{r['paper_step_ms']:.2f}", f"{r['direct_factor_ms']:.2f}",
+            f"{r['newton_step_ms']:.2f}", f"{r['newton_iterations_median']:.1f}",
+            f"{r['cg25_energy_error']:.1%}", f"{r['peak_rss_mb']:.0f}", target,
+        ])  # fmt: skip
+    return table
 
 
 def print_robust_targets(records: list, key: str, what: str) -> None:

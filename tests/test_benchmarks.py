@@ -17,7 +17,16 @@ from tissue.contact.penalty import PenaltyParams
 
 def _run(args: list[str], json_path: Path) -> list[dict]:
     assert main([*args, "--json", str(json_path)]) == 0
+    _check_markdown(json_path.with_suffix(".md"), args)
     return json.loads(json_path.read_text())
+
+
+def _check_markdown(path: Path, args: list[str]) -> None:
+    """The benchmark wrote its tables beside the JSON, saying what made them and where."""
+    text = path.read_text()
+    assert f"`probegym {' '.join(args)} --json {path.with_suffix('.json')}`" in text
+    assert "on revision `" in text and "load average" in text and "cores" in text
+    assert "| --- |" in text
 
 
 def test_bench_contact_writes_every_method_and_mode(tmp_path: Path) -> None:
@@ -99,3 +108,21 @@ def test_bench_peer_compares_ours_with_mujoco_flex(tmp_path: Path) -> None:
     assert record["ours_lesion_error_m"]["robust"] < 1e-4
     assert math.isfinite(record["mujoco_lesion_error_m"])
     assert record["reference_lesion1_displacement_m"] > 1e-3 * 0.2  # 2 mm of travel moves it
+
+
+def test_bench_env_reports_steps_per_second_and_where_the_time_goes(tmp_path: Path) -> None:
+    json_path = tmp_path / "env.json"
+    assert (
+        main(["bench", "env", "--levels", "623", "--methods", "lm", "--json", str(json_path)]) == 0
+    )
+    _check_markdown(
+        json_path.with_suffix(".md"), ["bench", "env", "--levels", "623", "--methods", "lm"]
+    )
+    payload = json.loads(json_path.read_text())
+    assert payload["revision"] and payload["machine"]
+    (record,) = payload["records"]
+    assert record["tets"] == 571 and record["statuses"] == {"ok": record["steps"]}
+    parts = ("robot_ms", "controller_ms", "tissue_ms", "observation_ms")
+    assert all(record[part] > 0.0 for part in parts)
+    assert sum(record[part] for part in parts) <= record["step_wall_ms"] * 1.05
+    assert record["steps_per_s"] > 0.0 and record["reset_ms"] > 0.0
