@@ -8,7 +8,7 @@ import pytest
 
 from tissue.contact import ContactMethod, make_contact_model
 from tissue.contact import base as contact_base
-from tissue.contact.lagrange import _KEEP_FACTORIZATION_UNKNOWNS, LagrangeParams
+from tissue.contact.lagrange import LagrangeParams
 from tissue.contact.penalty import PenaltyParams
 from tissue.contact.placement import first_contact_pose
 from tissue.contact.prescribed import PrescribedParams
@@ -76,13 +76,11 @@ def test_lagrange_kept_factorization_matches_refactorizing(
 ) -> None:
     """Robust LM keeping a factorisation across steps (what the 105k and 176k levels use)
     converges to the same contact forces and positions as refactorising every iteration."""
-    import tissue.contact.lagrange as lagrange
-
     shape = SphereProbe(0.01)
     results = []
     for threshold in (10**9, 0):  # refactorise always; keep always
-        monkeypatch.setattr(lagrange, "_KEEP_FACTORIZATION_UNKNOWNS", threshold)
-        model = _model("lm", block, shape, mode="robust", quasi=quasi)
+        params = LagrangeParams(keep_factorization_unknowns=threshold)
+        model = _model("lm", block, shape, mode="robust", quasi=quasi, params=params)
         result = _press(model, shape, 0.002, 10, SIZE / 2)
         assert result.status is StepStatus.OK, result.diagnostics
         assert result.penetration_max_m < 1e-6
@@ -96,17 +94,14 @@ def test_lagrange_kept_factorization_matches_refactorizing(
 def test_kept_response_leaves_far_free_constraints_out_of_the_lcp(
     block, monkeypatch: pytest.MonkeyPatch, quasi: bool
 ) -> None:
-    """Constraints carrying no force and farther than _LAZY_GAP_M from the probe stay out of
-    the kept response's LCP (no W~ columns are solved for them) and the press ends where
-    the full LCP takes it."""
-    import tissue.contact.lagrange as lagrange
-
-    monkeypatch.setattr(lagrange, "_KEEP_FACTORIZATION_UNKNOWNS", 0)
+    """Constraints carrying no force and farther than ``lazy_gap_m`` from the probe stay
+    out of the kept response's LCP (no W~ columns are solved for them) and the press ends
+    where the full LCP takes it."""
     shape = SphereProbe(0.01)
     outcomes = []
-    for lazy_gap_m in (np.inf, lagrange._LAZY_GAP_M):  # every constraint; the default
-        monkeypatch.setattr(lagrange, "_LAZY_GAP_M", lazy_gap_m)
-        model = _model("lm", block, shape, mode="robust", quasi=quasi)
+    for lazy_gap_m in (np.inf, LagrangeParams.lazy_gap_m):  # every constraint; the default
+        params = LagrangeParams(keep_factorization_unknowns=0, lazy_gap_m=lazy_gap_m)
+        model = _model("lm", block, shape, mode="robust", quasi=quasi, params=params)
         result = _press(model, shape, 0.002, 10, SIZE / 2)
         assert result.status is StepStatus.OK, result.diagnostics
         assert result.penetration_max_m < 1e-6
@@ -124,15 +119,15 @@ def test_kept_solves_stop_at_the_accuracy_the_newton_tolerance_needs(
     """With a kept factorisation, robust LM's free and response solves stop once their
     residual is what the Newton tolerance needs (as the integrator's Newton's do), not only at
     a tenth of the last residual: fewer CG iterations, the same press."""
-    import tissue.contact.lagrange as lagrange
+    from tissue.contact.lagrange import newton
 
-    monkeypatch.setattr(lagrange, "_KEEP_FACTORIZATION_UNKNOWNS", 0)
     shape = SphereProbe(0.01)
     outcomes = []
     # No absolute floor (the relative tolerance alone), then the default one.
-    for share in (0.0, lagrange.LINEAR_SHARE_OF_TOLERANCE):
-        monkeypatch.setattr(lagrange, "LINEAR_SHARE_OF_TOLERANCE", share)
-        model = _model("lm", block, shape, mode="robust", quasi=quasi)
+    for share in (0.0, newton.LINEAR_SHARE_OF_TOLERANCE):
+        monkeypatch.setattr(newton, "LINEAR_SHARE_OF_TOLERANCE", share)
+        params = LagrangeParams(keep_factorization_unknowns=0)
+        model = _model("lm", block, shape, mode="robust", quasi=quasi, params=params)
         solver = model.sim.integrator.solver
         iterations = 0
 
@@ -195,16 +190,16 @@ def test_robust_lagrange_converges_quadratically_under_a_curved_probe(
     projected one throughout with a kept factorisation) a sphere pressed 1-6 mm into a
     near-incompressible block took 6-15 Newton iterations a step refactorising and 7-19
     keeping a factorisation (the study's 26,220-tet reference stalled outright at 31 mm);
-    now 3-4 and 7-8 (six of those on the projected tangent, _KEPT_PROJECTED_ITERATIONS)."""
-    import tissue.contact.lagrange as lagrange
-
+    now 3-4 and 7-8 (six of those on the projected tangent, kept_projected_iterations)."""
     shape = SphereProbe(0.01)
     materials = TissueMaterials(tissue=NeoHookean(E, 0.45))
     config = SimulationConfig(mode="robust", quasi_static=True, newton_tolerance=1e-6)
     forces = {}
-    for threshold, allowed in ((10**9, 5), (0, lagrange._KEPT_PROJECTED_ITERATIONS + 3)):
-        monkeypatch.setattr(lagrange, "_KEEP_FACTORIZATION_UNKNOWNS", threshold)
-        model = make_contact_model("lm", block, shape, materials=materials, config=config)
+    for threshold, allowed in ((10**9, 5), (0, LagrangeParams.kept_projected_iterations + 3)):
+        params = LagrangeParams(keep_factorization_unknowns=threshold)
+        model = make_contact_model(
+            "lm", block, shape, materials=materials, config=config, params=params
+        )
         probe = Probe.looking_along(
             shape, np.array([0.001, 0.0013, SIZE / 2]), np.array([0.0, 0.0, -1.0])
         )
@@ -308,11 +303,9 @@ def test_quasi_static_lagrange_gives_up_cleanly_when_its_first_exact_tangent_fai
     ValueError from forces of length 0 against the step's contact rows); now it reports not
     converged, with the forces it started from. The solver is made to call every exact
     tangent indefinite here, refactorising every iteration and keeping a factorisation."""
-    import tissue.contact.lagrange as lagrange
-
-    monkeypatch.setattr(lagrange, "_KEEP_FACTORIZATION_UNKNOWNS", 0 if keep else 10**9)
+    params = LagrangeParams(keep_factorization_unknowns=0 if keep else 10**9)
     shape = SphereProbe(0.01)
-    model = _model("lm", block, shape)
+    model = _model("lm", block, shape, params=params)
     _press(model, shape, 0.002, 2, SIZE / 2)
     solver = model.sim.integrator.solver
     if keep:  # every refreshed kept factorisation reads as not positive definite
@@ -353,7 +346,7 @@ def test_dynamic_robust_lagrange_steps_take_the_exact_tangent(block) -> None:
         return result, iterations, exact
 
     result, iterations, exact = press()
-    assert 3 * block.node_count >= _KEEP_FACTORIZATION_UNKNOWNS
+    assert 3 * block.node_count >= LagrangeParams.keep_factorization_unknowns
     assert exact == iterations
     tight, _, _ = press(newton_tolerance=1e-8)
     assert result.force_world[2] == pytest.approx(tight.force_world[2], rel=1e-4)

@@ -85,7 +85,7 @@ MUTATIONS = (
     ),
     Mutation(
         "LM's projected Gauss-Seidel lets a contact pull",
-        "tissue/contact/lagrange.py",
+        "tissue/contact/lagrange/pgs.py",
         "            if new < 0.0:\n                new = 0.0",
         "            if new < -1e300:\n                new = 0.0",
         ("tests/test_contact.py", "-k", "signorini"),

@@ -1,0 +1,42 @@
+"""The Lagrange-multiplier contact model, :class:`LagrangeContact`.
+
+It composes the package's pieces: the state kept between steps (:mod:`.state`), the contact
+response (:mod:`.response`), ``paper`` mode's step (:mod:`.paper`) and ``robust`` mode's
+Newton-LCP step (:mod:`.newton`) with its fallbacks (:mod:`.fallbacks`), and picks the step
+by the simulation's mode.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tissue.contact.base import ContactMethod
+from tissue.contact.lagrange.fallbacks import RobustFallbacks
+from tissue.contact.lagrange.paper import PaperSteps
+from tissue.sim.integrator import IntegrationMode
+from tissue.status import StepStatus
+
+
+class LagrangeContact(PaperSteps, RobustFallbacks):
+    """Frictionless contact as constraints, solved for their Lagrange multipliers.
+
+    ``paper`` mode follows Tagliabue et al. 2020, section 2.1.2, as written (one linearised
+    free motion, collision detection and exact response a step); ``robust`` mode solves the
+    same Signorini problem on the nonlinear incremental potential to the Newton tolerance.
+    Settings: :class:`~tissue.contact.lagrange.LagrangeParams`. Limitation: frictionless.
+    """
+
+    method = ContactMethod.LM
+
+    def _advance(
+        self, h: float
+    ) -> tuple[StepStatus, NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
+        if self.sim.config.mode is IntegrationMode.PAPER:
+            outcome = self._paper_step(h)
+        else:
+            outcome = self._subdivided_robust_step(h, 0)
+        self._pose_before = (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
+        return outcome
