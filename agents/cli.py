@@ -13,6 +13,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from tissue.errors import ConfigError, TissueInputError
+from tissue.profile import Profile
 
 
 def _level(value: str) -> int:
@@ -76,7 +77,7 @@ def _build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--level", type=_level, default=4126, help="phantom mesh level (tet count)")
     demo.add_argument("--depth-mm", type=float, default=10.0, help="compression depth [mm]")
     demo.add_argument(
-        "--profile", "--mode", dest="mode", choices=["paper", "robust"], default="robust"
+        "--profile", "--mode", dest="mode", choices=[p.value for p in Profile], default="robust"
     )
 
     mesh = commands.add_parser("mesh", help="write a phantom mesh level to a file")
@@ -334,21 +335,19 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         return 0
     if args.command == "bench" and args.bench == "contact":
         from agents.contact_benchmark import run_contact_benchmark
-        from tissue.contact import ContactMethod
-        from tissue.sim.integrator import IntegrationMode
+        from tissue.contact import contact_method
 
-        methods = _names(args.methods, ContactMethod.parse)
-        modes = _names(args.modes, IntegrationMode.parse)
+        methods = _names(args.methods, contact_method)
+        modes = _names(args.modes, Profile.parse)
         if not modes:
             parser.error("--profile needs one or more of paper,robust; got nothing")
         run_contact_benchmark(args.levels, methods, modes, args.json, command=args.command_line)
         return 0
     if args.command == "bench" and args.bench == "env":
         from agents.env_benchmark import run_env_benchmark
-        from tissue.contact import ContactMethod
-        from tissue.spec import Profile
+        from tissue.contact import contact_method
 
-        methods = _names(args.methods, ContactMethod.parse)
+        methods = _names(args.methods, contact_method)
         profiles = _names(args.profiles, Profile.parse)
         if not profiles:
             parser.error("--profile needs one or more of paper,robust; got nothing")

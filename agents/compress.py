@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tissue import TissueSpec, make_tissue
-from tissue.contact import ContactMethod, ContactModel
+from tissue.contact import ContactModel, contact_method
 from tissue.contact.base import ContactResult
 from tissue.contact.placement import first_contact_pose, ray_surface_hit
 from tissue.contact.prescribed import PrescribedParams
@@ -347,26 +347,24 @@ def build_model(
     online (sticking, or ``sliding``) or fixed set, without the guard, as the study runs it.
     ``pbd_config``: PBD settings instead of the profile's per-mesh calibration.
     """
-    method_enum = ContactMethod.parse(method)
-    if online and method_enum is not ContactMethod.PRESCRIBED:
+    method = contact_method(method)
+    if online and method != "prescribed":
         raise ConfigError(f"--online applies to --method prescribed only; got --method {method}")
     if online is None and sliding:
         online = mode == "robust"  # the profile's node set: online in robust mode only
-    if sliding and not (online and method_enum is ContactMethod.PRESCRIBED):
+    if sliding and not (online and method == "prescribed"):
         raise ConfigError(
             "--sliding applies to --method prescribed with an online node set (--online; the "
             f"default in robust mode); got --method {method}, online {online}"
         )
     params: Any = None
-    if method_enum is ContactMethod.PRESCRIBED and (
-        online is not None or sliding or node_set is not None
-    ):
+    if method == "prescribed" and (online is not None or sliding or node_set is not None):
         params = PrescribedParams(online=bool(online), sliding=sliding, node_set=node_set)
-    elif method_enum is ContactMethod.PBD and pbd_config is not None:
+    elif method == "pbd" and pbd_config is not None:
         params = pbd_config
     spec = TissueSpec(
         mesh=mesh,
-        contact=method_enum.value,
+        contact=method,
         profile=mode,
         young_pa=young_pa,
         poisson=poisson,

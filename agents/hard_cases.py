@@ -45,8 +45,8 @@ from scipy.spatial.transform import Rotation
 
 from agents.compress import Waypoint, plan_scene, run_compression, straight_path
 from agents.outputs import write_json
-from tissue.contact import make_contact_model
-from tissue.contact.base import ContactMethod, ContactModel, ContactResult, contact_surface
+from tissue.contact import contact_method, make_contact_model
+from tissue.contact.base import ContactModel, ContactResult, contact_surface
 from tissue.contact.fe_model import model_surface
 from tissue.contact.penalty import PenaltyParams, default_stiffness_n_per_m
 from tissue.contact.placement import first_contact_pose
@@ -145,23 +145,23 @@ def build_case_model(
     case: HardCase, method: str, config: str, mesh: TetMesh, shape: ProbeShape
 ) -> ContactModel:
     """The contact model of ``case`` for ``method`` in configuration ``config``."""
-    method_enum = ContactMethod.parse(method)
+    method = contact_method(method)
     materials = TissueMaterials(
         tissue=NeoHookean(poisson=case.poisson),
         lesion_stiffness_ratio=case.lesion_stiffness_ratio,
     )
-    if method_enum is ContactMethod.PBD:
+    if method == "pbd":
         return make_contact_model(
-            method_enum, mesh, shape, materials=materials, config=PBDConfig.for_mode(config)
+            method, mesh, shape, materials=materials, config=PBDConfig.for_mode(config)
         )
     kwargs: dict[str, Any] = {"materials": materials, "config": SimulationConfig(mode=config)}
-    if method_enum is ContactMethod.PENALTY:
+    if method == "penalty":
         surface = model_surface(mesh, kwargs["config"])
         default = default_stiffness_n_per_m(surface, mesh, materials)
         kwargs["params"] = PenaltyParams(stiffness_n_per_m=default * case.penalty_stiffness_scale)
-    elif method_enum is ContactMethod.PRESCRIBED:
+    elif method == "prescribed":
         kwargs["params"] = PrescribedParams(online=config == "robust")
-    return make_contact_model(method_enum, mesh, shape, **kwargs)
+    return make_contact_model(method, mesh, shape, **kwargs)
 
 
 def case_path(
@@ -288,7 +288,7 @@ def run_hard_case(
     instability = run["instability"]
     return {
         "case": name,
-        "method": ContactMethod.parse(method).value,
+        "method": contact_method(method),
         "config": config,
         "level": case.level,
         "tets": mesh.tet_count,
@@ -360,7 +360,7 @@ def run_catalogue(
     for name in cases:
         hard_case(name)
     for method in methods:
-        ContactMethod.parse(method)
+        contact_method(method)
     records = []
     header = (
         f"{'case':16} {'method':10} {'config':7} {'tets':>7} {'stable':>6} {'%':>5} "

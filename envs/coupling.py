@@ -92,7 +92,7 @@ class TissueCoupling:
         self.names = names
         self.tissue = tissue_model
         self.reaction = reaction
-        self.linearised = linearised and tissue_model.contact is not tissue.ContactMethod.PBD
+        self.linearised = linearised and tissue_model.has_tangent
         self._w0 = np.zeros(6)
         self._stiffness = np.zeros((6, 6))
         self._q0_pos = np.zeros(3)

@@ -6,7 +6,7 @@ import numba
 import numpy as np
 import pytest
 
-from tissue.contact import ContactMethod, make_contact_model
+from tissue.contact import contact_method, make_contact_model
 from tissue.contact import base as contact_base
 from tissue.contact.lagrange import LagrangeParams
 from tissue.contact.penalty import PenaltyParams
@@ -643,7 +643,9 @@ def test_bad_contact_input_is_named(block) -> None:
         PrescribedParams(online=True, node_set=(1, 2))
     with pytest.raises(ConfigError, match="sliding=True needs online=True"):
         PrescribedParams(sliding=True)
-    assert ContactMethod.parse("pbd") is ContactMethod.PBD
+    assert contact_method("PBD") == "pbd"
+    with pytest.raises(ConfigError, match="unknown contact method 3"):
+        contact_method(3)
 
 
 @pytest.mark.parametrize(

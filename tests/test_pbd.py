@@ -11,13 +11,12 @@ import numpy as np
 import pytest
 
 import tissue.pbd as pbd
-from tissue.contact.base import ContactMethod
 from tissue.errors import ConfigError
 from tissue.mesh import TetMesh
 from tissue.mesh.block import block_mesh
 from tissue.mesh.phantom import breast_phantom
 from tissue.pbd import PBDConfig, PBDContact
-from tissue.pbd_calibration import calibrate_pbd
+from tissue.pbd.calibration import calibrate_pbd
 from tissue.probe import BoxProbe, Probe, quat_to_matrix
 from tissue.status import StepStatus
 
@@ -54,7 +53,7 @@ def _press(model: PBDContact, depth_m: float, hold_steps: int = 0):
 
 def test_method_and_interface(block: TetMesh) -> None:
     model = PBDContact(block, PROBE_SHAPE)
-    assert model.method is ContactMethod.PBD
+    assert model.method == "pbd"
     assert model.dt == pytest.approx(0.02)
     assert model.node_positions.shape == (block.node_count, 3)
     with pytest.raises(ValueError):

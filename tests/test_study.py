@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 from agents.study.runner import RESULTS_FILE, read_results, run_study
-from agents.study.spec import Cell, StudyConfig, StudySpec
+from agents.study.spec import Cell, StudySpec
 from agents.study.tables import complete_front, pareto_front, stability_table, valid_errors
-from tissue.contact.base import ContactMethod
 from tissue.errors import ConfigError
+from tissue.profile import Profile
 
 OUTPUTS = (
     "results.jsonl",
@@ -31,7 +31,7 @@ OUTPUTS = (
 # Two coarse levels, two methods, one lesion, both configurations; the reference runs on
 # the finer of the two levels so the test stays a few seconds.
 TINY = StudySpec(
-    methods=(ContactMethod.PRESCRIBED, ContactMethod.PENALTY),
+    methods=("prescribed", "penalty"),
     levels=(623, 1363),
     lesions=(1,),
     reference_level=1363,
@@ -253,8 +253,8 @@ def test_study_refuses_different_physics_in_the_same_directory(tiny_study) -> No
         (["--scene", "/nonexistent/scene"], "neither 'synthetic'"),
         (["--depths", "0.02,0.01"], "must increase"),
         (["--depths", "20,30"], "metres"),
-        (["--config", "fast"], "unknown configuration 'fast'"),
-        (["--profile", "fast"], "unknown configuration 'fast'"),
+        (["--config", "fast"], "unknown profile 'fast'"),
+        (["--profile", "fast"], "unknown profile 'fast'"),
         (["--reference-kind", "static"], "unknown reference kind 'static'; choose one of"),
         (["--lesions", "11"], "not in the synthetic scene"),
         (["--workers", "0"], "--workers"),
@@ -391,11 +391,11 @@ def test_cells_cover_every_method_and_configuration_in_level_order() -> None:
     cells = StudySpec(levels=(1363, 623), lesions=(1,)).cells((1,))
     assert [c.level for c in cells[:8]] == [1363] * 8  # the order given
     assert len(cells) == 16 and len({c.key for c in cells}) == 16
-    pbd = [c for c in cells if c.method is ContactMethod.PBD]
+    pbd = [c for c in cells if c.method == "pbd"]
     assert {(c.config, c.level) for c in pbd} == {
-        (config, level) for config in StudyConfig for level in (1363, 623)
+        (config, level) for config in Profile for level in (1363, 623)
     }
-    assert Cell(StudyConfig.ROBUST, ContactMethod.LM, 623, 3).key == "robust/lm/623/3"
+    assert Cell(Profile.ROBUST, "lm", 623, 3).key == "robust/lm/623/3"
 
 
 def test_reference_kind_is_the_specs_and_keys_what_it_depends_on(paper_scene_dir: Path) -> None:
@@ -432,7 +432,7 @@ def test_reference_kind_is_the_specs_and_keys_what_it_depends_on(paper_scene_dir
 @pytest.mark.slow
 def test_published_scene_runs_one_lesion(tmp_path: Path, paper_scene_dir: Path) -> None:
     spec = StudySpec(
-        scene=str(paper_scene_dir), methods=(ContactMethod.LM, ContactMethod.PRESCRIBED),
+        scene=str(paper_scene_dir), methods=("lm", "prescribed"),
         levels=("published",), lesions=(1,), configs=("robust", "paper"),
         reference_level="published",
     )  # type: ignore[arg-type]  # fmt: skip
@@ -461,7 +461,7 @@ def test_published_scene_runs_one_lesion(tmp_path: Path, paper_scene_dir: Path) 
 def test_local_ray_run_matches_local_run(tmp_path: Path) -> None:
     pytest.importorskip("ray", reason="Ray is the optional 'ray' extra")
     spec = StudySpec(
-        methods=(ContactMethod.PRESCRIBED, ContactMethod.PENALTY), levels=(623,), lesions=(4,),
+        methods=("prescribed", "penalty"), levels=(623,), lesions=(4,),
         reference_level=623, depths_m=(0.004, 0.008),
     )  # fmt: skip
     env_before = dict(os.environ)
@@ -530,7 +530,7 @@ def test_robust_pbd_cell_with_a_flattening_sliver_completes() -> None:
     from agents.study.cell import run_cell
 
     spec = StudySpec(levels=(26220,), lesions=(8,), reference_level=26220)
-    record = run_cell(spec, Cell(StudyConfig.ROBUST, ContactMethod.PBD, 26220, 8))
+    record = run_cell(spec, Cell(Profile.ROBUST, "pbd", 26220, 8))
     assert record["instability"] is None, record["instability"]
     assert record["stability_percent"] == 100.0 and record["status"] == "ok"
     assert len(record["tracked_m"]) == 4
@@ -551,7 +551,7 @@ def test_robust_lm_settles_onto_its_own_levels_reference() -> None:
         levels=(4126,), lesions=(1,), reference_level=4126, reference_kind="quasi-static"
     )  # type: ignore[arg-type]  # fmt: skip
     reference = compute_reference(spec, scene_for(spec.scene), 1)
-    record = run_cell(spec, Cell(StudyConfig.ROBUST, ContactMethod.LM, 4126, 1))
+    record = run_cell(spec, Cell(Profile.ROBUST, "lm", 4126, 1))
     assert record["stability_percent"] == 100.0 and reference["instability"] is None
     errors = np.linalg.norm(
         np.subtract(record["tracked_m"], reference["tracked_m"]), axis=1

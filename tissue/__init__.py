@@ -19,7 +19,14 @@ policy is :func:`configure_threads`, which the command line and the environments
 which a tissue applies with its defaults if no one did).
 """
 
-from tissue.contact.base import ContactMethod
+import tissue.pbd  # noqa: F401  (PBD, a tissue backend of its own, registers its strategy)
+from tissue.contact.base import ContactModel
+from tissue.contact.registry import (
+    contact_class,
+    contact_methods,
+    register_contact,
+    unregister_contact,
+)
 from tissue.errors import ConfigError, MaterialError, MeshError, TissueInputError
 from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.lesions import Lesion
@@ -32,7 +39,8 @@ from tissue.model import (
     pressing_direction,
 )
 from tissue.probe import ProbeShape
-from tissue.spec import PUBLISHED_SCENE, Profile, TissueSpec
+from tissue.profile import Profile
+from tissue.spec import PUBLISHED_SCENE, TissueSpec
 from tissue.status import StepStatus
 from tissue.surface_mesh import SurfaceMesh
 from tissue.threads import ThreadPolicy, configure_threads
@@ -40,7 +48,7 @@ from tissue.threads import ThreadPolicy, configure_threads
 __all__ = [
     "PUBLISHED_SCENE",
     "ConfigError",
-    "ContactMethod",
+    "ContactModel",
     "Lesion",
     "MaterialError",
     "MeshError",
@@ -58,6 +66,10 @@ __all__ = [
     "TissueState",
     "TissueStep",
     "configure_threads",
+    "contact_class",
+    "contact_methods",
     "make_tissue",
     "pressing_direction",
+    "register_contact",
+    "unregister_contact",
 ]

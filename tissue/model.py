@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tissue.contact import make_contact_model
-from tissue.contact.base import ContactMethod, ContactModel, ContactResult
+from tissue.contact.base import ContactModel, ContactResult
 from tissue.contact.placement import first_contact_pose, radial_roll_rad, skin_normal_above
 from tissue.errors import TissueInputError
 from tissue.lesions import Lesion, LesionTracker
@@ -181,8 +181,14 @@ class Tissue:
         return self._resolved
 
     @property
-    def contact(self) -> ContactMethod:
+    def contact(self) -> str:
+        """The contact method's registry name."""
         return self._resolved.method
+
+    @property
+    def has_tangent(self) -> bool:
+        """Whether the tissue has a stiffness tangent (:meth:`wrench_stiffness` not None)."""
+        return self._model.has_tangent
 
     @property
     def dt(self) -> float:
@@ -318,7 +324,7 @@ class Tissue:
         rotation) [N/m, N/rad; N m/m, N m/rad], symmetric positive semi-definite where the
         probe presses. The tissue's static response, linearised at the present state and
         contact set; see :mod:`tissue.wrench_stiffness` for how and what it costs. None for
-        PBD (no tangent)."""
+        a strategy without a tangent (PBD; :attr:`has_tangent`)."""
         # Under the step's thread rule: a small tissue's kernels on one thread (tissue.threads).
         with one_thread_below(3 * self._resolved.mesh.node_count, SERIAL_STEP_UNKNOWNS):
             return wrench_stiffness(self._model)

@@ -2,72 +2,33 @@
 
 A :class:`TissueSpec` is a frozen, validated description (mesh, materials, contact method and
 its parameters, profile, time step, probe). :func:`resolve_spec` turns it, once, into every
-lower-level configuration a tissue is built from (:class:`ResolvedTissue`): the profile
-(``paper`` or ``robust``) is decided here and nowhere else behind the front door.
+lower-level configuration a tissue is built from (:class:`ResolvedTissue`), asking the
+contact strategy for its settings under the spec's profile (:mod:`tissue.profile`).
 
-The profiles:
-
-- ``paper``: as Tagliabue et al. 2020 -- one linearised backward-Euler solve per step, CG
-  capped at 25 iterations (``tissue.sim.simulator.SimulationConfig(mode="paper")``); prescribed
-  displacement with the node set chosen at first contact (on the published scene, its own
-  set for the lesion); penalty with plain springs; the 10-substep XPBD baseline.
-- ``robust``: Newton to a tolerance with line search, PSD-projected tangents, step
-  subdivision and an inversion barrier; penalty augmented to 0.1 mm of penetration;
-  prescribed displacement with an online, sliding (frictionless) node set on the volume's
-  boundary and the skin between its nodes kept out of the probe
-  (:class:`tissue.contact.prescribed.PrescribedParams`, ``skin_guard``); the 60-substep XPBD
-  tissue with a volume floor.
-
-Either way a PBD tissue's compliance scales are calibrated for the mesh it runs on
-(:func:`tissue.pbd_calibration.calibrated_pbd_config`, cached on disk).
+The profiles themselves are described in :mod:`tissue.profile`.
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from tissue.choices import Choice
-from tissue.contact.base import ContactMethod
-from tissue.contact.lagrange import LagrangeParams
-from tissue.contact.penalty import PenaltyParams
-from tissue.contact.prescribed import PrescribedParams
+from tissue.contact.registry import contact_class, contact_method
 from tissue.errors import ConfigError, check_setting_names
 from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.mesh import TetMesh
-from tissue.pbd import PBDConfig
 from tissue.probe import ProbeShape, parse_probe_spec
-from tissue.sim.simulator import SimulationConfig
+from tissue.profile import Profile
 
 #: ``TissueSpec(mesh=PUBLISHED_SCENE)`` loads the published scene from where the project
 #: looks for it (``PROBEGYM_PAPER_SCENE``, then ``shared/paper-scene`` beside the checkout).
 PUBLISHED_SCENE = "paper-scene"
 #: Where the published scene is looked for, in order: this variable, then beside the checkout.
 PAPER_SCENE_ENV_VAR = "PROBEGYM_PAPER_SCENE"
-
-
-class Profile(Choice):
-    """How faithfully to the paper, or how robustly, a tissue is simulated (module docstring)."""
-
-    PAPER = "paper"
-    ROBUST = "robust"
-
-    @classmethod
-    def noun(cls) -> str:
-        return "profile"
-
-
-#: Each contact method's parameter type (``TissueSpec.contact_params``).
-PARAMS_TYPES: dict[ContactMethod, type] = {
-    ContactMethod.PENALTY: PenaltyParams,
-    ContactMethod.LM: LagrangeParams,
-    ContactMethod.PRESCRIBED: PrescribedParams,
-    ContactMethod.PBD: PBDConfig,
-}
 
 
 @dataclass(frozen=True)
@@ -80,15 +41,17 @@ class TissueSpec:
             ``fixed_nodes_file``), ``"paper-scene"`` or a directory laid out as the
             published scene (with ``scene_lesion`` for the paper profile's prescribed node
             set), or a :class:`tissue.mesh.TetMesh`.
-        contact: ``penalty``, ``lm``, ``prescribed`` or ``pbd``.
-        profile: ``paper`` or ``robust`` (see the module docstring).
+        contact: a registered contact method (:func:`tissue.contact_methods`): ``penalty``,
+            ``lm``, ``prescribed``, ``pbd`` or one registered with
+            :func:`tissue.register_contact`.
+        profile: ``paper`` or ``robust`` (:mod:`tissue.profile`).
         tissue_dt: the tissue time step [s], in (0, 1] (the paper's 0.02).
         young_pa: the bulk tissue's Young's modulus [Pa] (default 2850).
         poisson: the bulk tissue's Poisson ratio (default 0.49).
         lesion_stiffness_ratio: E_lesion / E_tissue (default 4).
         materials: a full :class:`tissue.fem.material.TissueMaterials` instead of the three above.
-        contact_params: the method's parameters (:data:`PARAMS_TYPES`), replacing the
-            profile's; None: the profile's.
+        contact_params: the method's parameters (an instance of its class's
+            ``params_type``), replacing the profile's; None: the profile's.
         probe: the probe's shape: ``face`` (the linear probe, default), ``sphere:R``,
             ``box:LX,LY,LZ``, ``cylinder:R,H``, a mesh file, or a
             :class:`tissue.probe.ProbeShape`.
@@ -115,8 +78,8 @@ class TissueSpec:
     scene_lesion: int | None = None
 
     def __post_init__(self) -> None:
-        method = ContactMethod.parse(self.contact)
-        object.__setattr__(self, "contact", method.value)
+        method = contact_method(self.contact)
+        object.__setattr__(self, "contact", method)
         object.__setattr__(self, "profile", Profile.parse(self.profile).value)
         if isinstance(self.tissue_dt, bool) or not isinstance(self.tissue_dt, (int, float)):
             raise ConfigError(f"tissue_dt must be a number of seconds; got {self.tissue_dt!r}")
@@ -140,17 +103,16 @@ class TissueSpec:
                 )
         else:
             self.resolved_materials()  # validates the overrides now
-        expected = PARAMS_TYPES[method]
+        expected = contact_class(method).params_type
         if self.contact_params is not None and not isinstance(self.contact_params, expected):
             raise ConfigError(
-                f"contact {method.value!r} takes contact_params of type {expected.__name__}; "
+                f"contact {method!r} takes contact_params of type {expected.__name__}; "
                 f"got {type(self.contact_params).__name__}"
             )
-        if isinstance(self.contact_params, PBDConfig) and (
-            self.contact_params.tissue_dt != self.tissue_dt
-        ):
+        params_dt = getattr(self.contact_params, "tissue_dt", self.tissue_dt)
+        if params_dt != self.tissue_dt:
             raise ConfigError(
-                f"contact_params.tissue_dt ({self.contact_params.tissue_dt}) differs from "
+                f"contact_params.tissue_dt ({params_dt}) differs from "
                 f"tissue_dt ({self.tissue_dt}); give the step once, as tissue_dt"
             )
         if not isinstance(self.probe, (str, ProbeShape)):
@@ -231,6 +193,19 @@ class TissueSpec:
             lesion_stiffness_ratio=base.lesion_stiffness_ratio if ratio is None else ratio,
         )
 
+    def published_node_set(self, mesh: TetMesh) -> tuple[int, ...]:
+        """The published prescribed-node set of :attr:`scene_lesion` on the published scene
+        ``mesh``, as volume boundary nodes."""
+        from tissue.mesh.paper_scene import load_paper_scene, spring_nodes_to_volume
+
+        scene = load_paper_scene(published_scene_dir(self.mesh))
+        if self.scene_lesion not in scene.spring_nodes:
+            raise ConfigError(
+                f"scene_lesion {self.scene_lesion} is not in the published scene; choose one "
+                f"of {sorted(scene.spring_nodes)}"
+            )
+        return spring_nodes_to_volume(mesh, scene.spring_nodes[self.scene_lesion])
+
     def probe_shape(self) -> ProbeShape:
         """The probe's geometry."""
         return self.probe if isinstance(self.probe, ProbeShape) else parse_probe_spec(self.probe)
@@ -242,21 +217,21 @@ class ResolvedTissue:
 
     Attributes:
         spec: the spec it came from.
-        method: the contact method.
+        method: the contact method's registry name.
         mesh: the tet mesh.
         materials: per-region materials.
         probe_shape: the probe's geometry.
-        config: the FE simulation's configuration, or the PBD tissue's.
-        params: the FE strategy's parameters (None for PBD, whose ``config`` says all).
+        config: the FE simulation's configuration, or the tissue's own (PBD's).
+        params: the strategy's parameters (None where ``config`` says all, as PBD's).
     """
 
     spec: TissueSpec
-    method: ContactMethod
+    method: str
     mesh: TetMesh
     materials: TissueMaterials
     probe_shape: ProbeShape
-    config: SimulationConfig | PBDConfig
-    params: PenaltyParams | LagrangeParams | PrescribedParams | None
+    config: Any
+    params: Any
 
 
 def load_spec_mesh(spec: TissueSpec) -> TetMesh:
@@ -311,49 +286,14 @@ def published_scene_dir(mesh: object, hint: str = "give its directory") -> Path:
 
 
 def resolve_spec(spec: TissueSpec, mesh: TetMesh | None = None) -> ResolvedTissue:
-    """Decide every lower-level configuration of ``spec`` (the profile, in one place).
+    """Decide every lower-level configuration of ``spec`` once.
 
     Args:
         spec: the tissue.
         mesh: its mesh if already loaded (else :func:`load_spec_mesh`).
     """
     mesh = load_spec_mesh(spec) if mesh is None else mesh
-    method = ContactMethod.parse(spec.contact)
-    robust = Profile.parse(spec.profile) is Profile.ROBUST
+    method = contact_method(spec.contact)
     materials = spec.resolved_materials()
-    shape = spec.probe_shape()
-    if method is ContactMethod.PBD:
-        config: SimulationConfig | PBDConfig
-        if spec.contact_params is not None:
-            config = spec.contact_params
-        else:
-            from tissue.pbd_calibration import calibrated_pbd_config
-
-            base = replace(
-                PBDConfig.for_mode(spec.profile), tissue_dt=spec.tissue_dt, skin_contact=robust
-            )
-            config = calibrated_pbd_config(mesh, materials, base)
-        return ResolvedTissue(spec, method, mesh, materials, shape, config, None)
-    config = SimulationConfig(mode=spec.profile, tissue_dt=spec.tissue_dt)
-    params = spec.contact_params
-    if params is None and method is ContactMethod.PRESCRIBED:
-        if robust:
-            params = PrescribedParams(online=True, sliding=True, skin_guard=True)
-        elif spec.scene_lesion is not None:
-            params = PrescribedParams(node_set=published_node_set(spec, mesh))
-    if params is None:
-        params = PARAMS_TYPES[method]()
-    return ResolvedTissue(spec, method, mesh, materials, shape, config, params)
-
-
-def published_node_set(spec: TissueSpec, mesh: TetMesh) -> tuple[int, ...]:
-    """The published prescribed-node set of ``spec.scene_lesion``, as volume boundary nodes."""
-    from tissue.mesh.paper_scene import load_paper_scene, spring_nodes_to_volume
-
-    scene = load_paper_scene(published_scene_dir(spec.mesh))
-    if spec.scene_lesion not in scene.spring_nodes:
-        raise ConfigError(
-            f"scene_lesion {spec.scene_lesion} is not in the published scene; choose one of "
-            f"{sorted(scene.spring_nodes)}"
-        )
-    return spring_nodes_to_volume(mesh, scene.spring_nodes[spec.scene_lesion])
+    config, params = contact_class(method).settings_for(spec, mesh, materials)
+    return ResolvedTissue(spec, method, mesh, materials, spec.probe_shape(), config, params)

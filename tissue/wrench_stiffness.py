@@ -65,9 +65,9 @@ class ContactConstraints:
 def wrench_stiffness(model: ContactModel) -> NDArray[np.float64] | None:
     """K, (6, 6), world frame about the probe origin (see the module docstring); zeros out
     of contact; None for a strategy without a tangent (PBD)."""
-    constraints_of = getattr(model, "contact_constraints", None)
-    if constraints_of is None:
+    if not model.has_tangent:
         return None
+    constraints_of = model.contact_constraints  # type: ignore[attr-defined]
     constraints: ContactConstraints = constraints_of()
     if constraints.count == 0:
         return np.zeros((6, 6))

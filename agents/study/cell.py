@@ -14,11 +14,11 @@ import numpy as np
 
 from agents.compress import build_model, run_compression
 from agents.study.scenes import StudyScene, open_scene
-from agents.study.spec import Cell, StudyConfig, StudySpec
-from tissue.contact.base import ContactMethod
+from agents.study.spec import Cell, StudySpec
 from tissue.contact.stability import StabilityLimits, StabilityMonitor
 from tissue.pbd import PBDConfig
 from tissue.probe import parse_probe_spec
+from tissue.profile import Profile
 
 #: The study's instability detector: every check of :mod:`tissue.contact.stability` but the
 #: landmark jump, which frictionless contact on the sloped phantom also trips physically
@@ -47,15 +47,15 @@ def run_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
     scene = scene_for(spec.scene)
     mesh = scene.mesh(cell.level)
     shape = parse_probe_spec("face")
-    prescribed = cell.method is ContactMethod.PRESCRIBED
-    online = prescribed and cell.config is StudyConfig.ROBUST
+    prescribed = cell.method == "prescribed"
+    online = prescribed and cell.config is Profile.ROBUST
     node_set = scene.prescribed_nodes(mesh, cell.lesion) if prescribed and not online else None
     # The study's own configurations, fixed (its published results were computed with them):
     # robust prescribed online and sticking, PBD with the constants calibrated at 4,126 tets.
     model = build_model(
         mesh,
         shape,
-        cell.method.value,
+        cell.method,
         cell.config.value,
         None,
         None,
@@ -76,7 +76,7 @@ def run_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
         "key": cell.key,
         "scene": scene.name,
         "config": cell.config.value,
-        "method": cell.method.value,
+        "method": cell.method,
         "level": cell.level,
         "tets": mesh.tet_count,
         "nodes": mesh.node_count,

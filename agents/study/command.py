@@ -14,7 +14,7 @@ from agents.study.spec import (
     STUDY_SETTLE_STEPS,
     StudySpec,
 )
-from tissue.contact.base import ContactMethod
+from tissue.contact import contact_method
 from tissue.errors import ConfigError
 from tissue.mesh.phantom import PHANTOM_LEVELS
 
@@ -110,7 +110,7 @@ def spec_from_args(args: argparse.Namespace) -> StudySpec:
     )
     return StudySpec(
         scene=args.scene,
-        methods=tuple(ContactMethod.parse(m) for m in _split(args.methods, "methods")),
+        methods=tuple(contact_method(m) for m in _split(args.methods, "methods")),
         levels=tuple(levels),  # type: ignore[arg-type]  # parsed in __post_init__
         lesions=lesions,
         configs=tuple(_split(args.config, "config")),  # type: ignore[arg-type]

@@ -12,11 +12,10 @@ from typing import Any
 import numpy as np
 
 from agents.study.tables import (
-    METHOD_COLOUR,
-    METHOD_LABEL,
-    METHOD_ORDER,
     complete_front,
     levels_present,
+    method_colour,
+    method_label,
     methods_present,
     tets_of_level,
 )
@@ -59,10 +58,10 @@ def plot_boxes(
                     showfliers=True, manage_ticks=False,
                 )  # fmt: skip
                 for box in boxes["boxes"]:
-                    box.set_facecolor(METHOD_COLOUR[method])
+                    box.set_facecolor(method_colour(method))
                     box.set_alpha(0.6)
-            axis.plot([], [], color=METHOD_COLOUR[method], lw=6, alpha=0.6,
-                      label=METHOD_LABEL[method])  # fmt: skip
+            axis.plot([], [], color=method_colour(method), lw=6, alpha=0.6,
+                      label=method_label(method))  # fmt: skip
         for value, colour, label in hlines:
             axis.axhline(value, color=colour, lw=1, ls="--", label=label)
         axis.set_xticks(range(len(levels)))
@@ -92,7 +91,7 @@ def plot_accuracy_vs_time(path: Path, rows: list[dict[str, Any]]) -> None:
         # Hollow where the cells did not complete on average: their error counts only the
         # depths reached, so a hollow point's accuracy is not the whole experiment's (where
         # the paper configuration stops being usable as the mesh is refined).
-        colour = METHOD_COLOUR[row["method"]]
+        colour = method_colour(row["method"])
         complete = row["mean_stability_percent"] >= 100.0
         axis.scatter(
             row["median_step_ms"], row["median_error_mm"], marker=markers.get(row["config"], "^"),
@@ -112,12 +111,12 @@ def plot_accuracy_vs_time(path: Path, rows: list[dict[str, Any]]) -> None:
             # Above and below the front in turn: neighbours on the front often share an
             # error (the finest level's robust cells all near 0) and their labels overlapped.
             axis.annotate(
-                f"{METHOD_LABEL[row['method']]} {row['config']} {row['tets']:,}",
+                f"{method_label(row['method'])} {row['config']} {row['tets']:,}",
                 points[i], fontsize=7, xytext=(4, 4 if rank % 2 == 0 else -11),
                 textcoords="offset points",
             )  # fmt: skip
-    for method in METHOD_ORDER:
-        axis.scatter([], [], color=METHOD_COLOUR[method], label=METHOD_LABEL[method])
+    for method in methods_present(usable):
+        axis.scatter([], [], color=method_colour(method), label=method_label(method))
     for config, marker in markers.items():
         axis.scatter([], [], color="grey", marker=marker, label=config)
     axis.scatter([], [], facecolors="none", edgecolors="grey", linewidths=1.5,

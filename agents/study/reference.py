@@ -69,7 +69,6 @@ from agents.compress import SETTLED_SPEED_M_S, CompressionProgress, run_compress
 from agents.study.cell import STUDY_LIMITS
 from agents.study.scenes import StudyScene
 from agents.study.spec import ReferenceKind, StudySpec, level_label
-from tissue.contact.base import ContactMethod
 from tissue.contact.lagrange import LagrangeParams
 from tissue.contact.stability import StabilityMonitor
 from tissue.errors import ConfigError
@@ -243,7 +242,7 @@ def compute_reference(
     from tissue.fem.material import TissueMaterials
 
     model = make_contact_model(
-        ContactMethod.LM,
+        "lm",
         mesh,
         shape,
         materials=TissueMaterials(),
@@ -251,7 +250,7 @@ def compute_reference(
         params=LagrangeParams(max_iterations=REFERENCE_MAX_ITERATIONS),
     )
     start, stops = scene.path(mesh, shape, lesion, spec.depths_m)
-    monitor = StabilityMonitor(ContactMethod.LM, mesh.nodes, start.position, REFERENCE_LIMITS)
+    monitor = StabilityMonitor("lm", mesh.nodes, start.position, REFERENCE_LIMITS)
     # Quasi-static: one solve per 1 mm increment, each already at rest, so the hold's length
     # does not matter (references at 623 / 2,539 / 4,126 tets came out bit-identical with
     # holds of 50 and 250 steps); dynamic: the cells' speed and hold.

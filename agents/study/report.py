@@ -27,10 +27,10 @@ from agents.outputs import strict_json
 from agents.study.figures import plot_accuracy_vs_time, plot_boxes
 from agents.study.spec import StudySpec, level_label
 from agents.study.tables import (
-    METHOD_LABEL,
     complete_front,
     level_and_tets,
     median_times,
+    method_label,
     methods_present,
     stability_table,
     summary_rows,
@@ -59,7 +59,7 @@ def write_report(
 ) -> None:
     """Write every output file of the study into ``out`` (see the module docstring)."""
     configs = [c.value for c in spec.configs]
-    wanted = {(c, m.value) for c in configs for m in spec.methods}
+    wanted = {(c, m) for c in configs for m in spec.methods}
     records = [
         r for r in records
         if r["level"] in spec.levels
@@ -123,7 +123,7 @@ def _conclusions(
             continue
         complete = sum(r["stability_percent"] >= 100.0 for r in group)
         by_method = {
-            METHOD_LABEL[m]: np.mean([r["stability_percent"] for r in group if r["method"] == m])
+            method_label(m): np.mean([r["stability_percent"] for r in group if r["method"] == m])
             for m in methods_present(group)
         }
         worst = min(by_method, key=lambda name: by_method[name])
@@ -149,8 +149,8 @@ def _conclusions(
         high = max(scored, key=lambda r: r["median_error_mm"])
         sentences.append(
             f"Median localisation errors ranged from {low['median_error_mm']:.2f} mm "
-            f"({METHOD_LABEL[low['method']]}, {low['config']}, level {level_label(low['level'])}) "
-            f"to {high['median_error_mm']:.2f} mm ({METHOD_LABEL[high['method']]}, "
+            f"({method_label(low['method'])}, {low['config']}, level {level_label(low['level'])}) "
+            f"to {high['median_error_mm']:.2f} mm ({method_label(high['method'])}, "
             f"{high['config']}, level {level_label(high['level'])}), on the depths every "
             "method reached."
         )
@@ -162,7 +162,7 @@ def _conclusions(
         fastest = usable[front[0]]
         sentences.append(
             f"Of the cells that all completed, the fastest on the accuracy-time front was "
-            f"{METHOD_LABEL[fastest['method']]} ({fastest['config']}, "
+            f"{method_label(fastest['method'])} ({fastest['config']}, "
             f"{fastest['tets']:,} tets: {fastest['median_step_ms']:.1f} ms a step, "
             f"{fastest['median_error_mm']:.2f} mm)."
         )
@@ -239,7 +239,7 @@ def _write_markdown_and_html(
         error = "" if row["median_error_mm"] is None else f"{row['median_error_mm']:.2f}"
         time = "" if row["median_step_ms"] is None else f"{row['median_step_ms']:.2f}"
         lines.append(
-            f"| {row['config']} | {METHOD_LABEL[row['method']]} "
+            f"| {row['config']} | {method_label(row['method'])} "
             f"| {level_and_tets(row['level'], row['tets'])} | {row['cells']} | {error} "
             f"| {time} | {row['mean_stability_percent']:.0f} |"
         )

@@ -14,9 +14,10 @@ import numpy as np
 
 from agents.compress import ACCURATE_SETTLE_STEPS
 from tissue.choices import Choice
-from tissue.contact.base import ContactMethod
+from tissue.contact import contact_method
 from tissue.errors import ConfigError
 from tissue.mesh.phantom import PHANTOM_LEVELS, parse_level
+from tissue.profile import Profile
 
 #: The published scene's own volume mesh (9,295 tets), as a level of the study.
 NATIVE_LEVEL = 0
@@ -40,24 +41,8 @@ QUICK_LESIONS = (1, 3, 10)
 QUICK_REFERENCE_LEVEL = 7369
 
 
-class StudyConfig(Choice):
-    """How every FE method is solved in a cell.
-
-    ``paper``: as the paper -- one linearised backward-Euler solve per step, CG capped at 25
-    iterations for penalty and prescribed, a direct solver for LM; prescribed displacement
-    moves the node set chosen at first contact (or the published one).
-    ``robust``: Newton with line search to a tolerance, PSD-projected tangents, step
-    subdivision; prescribed displacement updates its node set online each step.
-    PBD: ``paper`` runs the 10-substep, FleX-like baseline, ``robust`` 60 substeps
-    (:meth:`tissue.pbd.PBDConfig.for_mode`).
-    """
-
-    PAPER = "paper"
-    ROBUST = "robust"
-
-    @classmethod
-    def noun(cls) -> str:
-        return "configuration"
+#: The contact methods a study runs unless told otherwise (the paper's three and PBD).
+STUDY_METHODS = ("lm", "penalty", "prescribed", "pbd")
 
 
 class ReferenceKind(Choice):
@@ -95,15 +80,15 @@ def parse_study_level(value: str | int) -> int:
 class Cell:
     """One experiment: a method on a level, pressing above a lesion, in a configuration."""
 
-    config: StudyConfig
-    method: ContactMethod
+    config: Profile
+    method: str
     level: int
     lesion: int
 
     @property
     def key(self) -> str:
         """A stable identifier, the key of ``results.jsonl`` records."""
-        return f"{self.config.value}/{self.method.value}/{self.level}/{self.lesion}"
+        return f"{self.config.value}/{self.method}/{self.level}/{self.lesion}"
 
 
 @dataclass(frozen=True)
@@ -113,10 +98,10 @@ class StudySpec:
     Attributes:
         scene: ``synthetic`` (the built-in phantom), ``paper`` (../shared/paper-scene) or a
             directory laid out like it.
-        methods: contact methods to run.
+        methods: contact methods to run (registered names; :data:`STUDY_METHODS`).
         levels: mesh levels (target tet counts; :data:`NATIVE_LEVEL` is the published mesh).
         lesions: lesion numbers (1-based); None: every lesion of the scene.
-        configs: configurations to run.
+        configs: the profiles to run each method in (:mod:`tissue.profile`).
         depths_m: depths past first contact [m] (synthetic scene only; the published scene's
             poses fix its own), increasing.
         reference_level: the level the converged reference runs on.
@@ -128,10 +113,10 @@ class StudySpec:
     """
 
     scene: str = "synthetic"
-    methods: tuple[ContactMethod, ...] = tuple(ContactMethod)
+    methods: tuple[str, ...] = STUDY_METHODS
     levels: tuple[int, ...] = PHANTOM_LEVELS
     lesions: tuple[int, ...] | None = None
-    configs: tuple[StudyConfig, ...] = (StudyConfig.PAPER, StudyConfig.ROBUST)
+    configs: tuple[Profile, ...] = (Profile.PAPER, Profile.ROBUST)
     depths_m: tuple[float, ...] = DEFAULT_DEPTHS_M
     reference_level: int = PHANTOM_LEVELS[-1]
     speed_m_s: float = PAPER_SPEED_M_S
@@ -140,8 +125,8 @@ class StudySpec:
     reference_kind: ReferenceKind = ReferenceKind.DYNAMIC
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "methods", tuple(ContactMethod.parse(m) for m in self.methods))
-        object.__setattr__(self, "configs", tuple(StudyConfig.parse(c) for c in self.configs))
+        object.__setattr__(self, "methods", tuple(contact_method(m) for m in self.methods))
+        object.__setattr__(self, "configs", tuple(Profile.parse(c) for c in self.configs))
         object.__setattr__(self, "levels", tuple(parse_study_level(v) for v in self.levels))
         object.__setattr__(self, "reference_level", parse_study_level(self.reference_level))
         object.__setattr__(self, "reference_kind", ReferenceKind.parse(self.reference_kind))
@@ -195,7 +180,7 @@ class StudySpec:
     def as_json(self) -> dict[str, object]:
         return {
             "scene": self.scene,
-            "methods": [m.value for m in self.methods],
+            "methods": list(self.methods),
             "levels": list(self.levels),
             "lesions": None if self.lesions is None else list(self.lesions),
             "configs": [c.value for c in self.configs],

@@ -11,12 +11,21 @@ from typing import Any
 
 import numpy as np
 
-from agents.study.spec import level_label
+from agents.study.spec import STUDY_METHODS, level_label
+from tissue.contact import CONTACT_MODELS
 
-METHOD_ORDER = ("lm", "penalty", "prescribed", "pbd")
-METHOD_LABEL = {"lm": "LM", "penalty": "Penalty", "prescribed": "PrescrDispl", "pbd": "PBD"}
-METHOD_COLOUR = {"lm": "tab:blue", "penalty": "tab:orange", "prescribed": "tab:green",
-                 "pbd": "tab:red"}  # fmt: skip
+
+def method_label(method: str) -> str:
+    """The method's short name in tables and figures: its strategy class's ``label``, or
+    the name itself for a method not registered in this process (records read back)."""
+    registered = CONTACT_MODELS.get(method)
+    return registered.label if registered is not None else method
+
+
+def method_colour(method: str) -> str:
+    """The method's colour in figures (its strategy class's ``colour``; grey if unknown)."""
+    registered = CONTACT_MODELS.get(method)
+    return registered.colour if registered is not None else "tab:gray"
 
 
 def _by_config(records: list[dict[str, Any]], configs: list[str]) -> dict[str, list[dict]]:
@@ -29,8 +38,9 @@ def _by_config(records: list[dict[str, Any]], configs: list[str]) -> dict[str, l
 
 
 def methods_present(records: list[dict[str, Any]]) -> list[str]:
+    """The methods in ``records``: the study's own in their order, then any others."""
     present = {record["method"] for record in records}
-    return [m for m in METHOD_ORDER if m in present]
+    return [m for m in STUDY_METHODS if m in present] + sorted(present - set(STUDY_METHODS))
 
 
 def levels_present(records: list[dict[str, Any]]) -> list[int]:
@@ -77,9 +87,9 @@ def stability_table(records: list[dict[str, Any]], configs: list[str]) -> str:
         paper = config == "paper" and any(
             level in PAPER_TABLE1 for level in levels_present(records)
         )
-        head = ["level (tets)", *(METHOD_LABEL[m] for m in methods)]
+        head = ["level (tets)", *(method_label(m) for m in methods)]
         if paper:
-            head += [f"2020 {METHOD_LABEL[m]}" for m in methods if m in PAPER_TABLE1_METHODS]
+            head += [f"2020 {method_label(m)}" for m in methods if m in PAPER_TABLE1_METHODS]
         lines = [
             f"**{config} profile**: mean (median, range) of the % of the experiment completed"
             + (" (right: Tagliabue et al. 2020, Table 1)" if paper else ""),

@@ -1,40 +1,38 @@
 """Probe-tissue contact strategies behind one interface, chosen by name.
 
-A new strategy is one module plus one entry in :data:`CONTACT_MODELS`.
+A strategy is a :class:`ContactModel` subclass stating its facts as class attributes and
+registered by name (:mod:`tissue.contact.registry`): a new strategy is one module plus one
+registration. The finite-element strategies here (penalty, Lagrange multipliers, prescribed
+displacement) register when this package is imported; PBD, a tissue backend of its own,
+registers from :mod:`tissue.pbd`, which ``import tissue`` loads.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from tissue.contact.base import ContactMethod, ContactModel, ContactResult
+from tissue.contact.base import ContactModel, ContactResult
 from tissue.contact.lagrange import LagrangeContact, LagrangeParams
 from tissue.contact.penalty import PenaltyContact, PenaltyParams
 from tissue.contact.prescribed import PrescribedContact, PrescribedParams
+from tissue.contact.registry import (
+    CONTACT_MODELS,
+    contact_class,
+    contact_method,
+    contact_methods,
+    register_contact,
+    unregister_contact,
+)
 from tissue.sim.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.threads import one_thread_below, thread_policy
 
-# name -> (model class, its parameter dataclass)
-CONTACT_MODELS: dict[ContactMethod, tuple[type[ContactModel], type]] = {
-    ContactMethod.PENALTY: (PenaltyContact, PenaltyParams),
-    ContactMethod.LM: (LagrangeContact, LagrangeParams),
-    ContactMethod.PRESCRIBED: (PrescribedContact, PrescribedParams),
-}
 
-
-def make_contact_model(
-    method: str | ContactMethod, mesh, probe_shape, **kwargs: Any
-) -> ContactModel:
-    """Build the contact model named ``method`` (penalty, lm, prescribed, pbd).
+def make_contact_model(method: str, mesh, probe_shape, **kwargs: Any) -> ContactModel:
+    """Build the contact model registered as ``method`` (:func:`contact_methods`).
 
     Keyword arguments go to the model (``materials``, ``config``, ``params``).
     """
-    method = ContactMethod.parse(method)
-    if method is ContactMethod.PBD and method not in CONTACT_MODELS:
-        from tissue.pbd import PBDConfig, PBDContact
-
-        CONTACT_MODELS[method] = (PBDContact, PBDConfig)
-    model_class, _ = CONTACT_MODELS[method]
+    model_class = contact_class(method)
     thread_policy()
     # Built under the step's thread rule, as TissueSimulator is (tissue.threads): a small
     # tissue's build then gives the same bits on any number of threads.
@@ -45,8 +43,18 @@ def make_contact_model(
 
 __all__ = [
     "CONTACT_MODELS",
-    "ContactMethod",
     "ContactModel",
     "ContactResult",
+    "LagrangeContact",
+    "LagrangeParams",
+    "PenaltyContact",
+    "PenaltyParams",
+    "PrescribedContact",
+    "PrescribedParams",
+    "contact_class",
+    "contact_method",
+    "contact_methods",
     "make_contact_model",
+    "register_contact",
+    "unregister_contact",
 ]

@@ -14,12 +14,11 @@ import abc
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from tissue.choices import Choice
 from tissue.contact.tunnelling import face_samples, skin_behind_probe
 from tissue.errors import TissueInputError
 from tissue.mesh import TetMesh, boundary_faces
@@ -28,19 +27,6 @@ from tissue.probe import Probe, ProbeShape
 from tissue.sim.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.status import StepStatus, worst
 from tissue.threads import one_thread_below
-
-
-class ContactMethod(Choice):
-    """The probe-tissue interaction strategies (Tagliabue et al. 2020, section 2.1)."""
-
-    PENALTY = "penalty"
-    LM = "lm"
-    PRESCRIBED = "prescribed"
-    PBD = "pbd"
-
-    @classmethod
-    def noun(cls) -> str:
-        return "contact method"
 
 
 @dataclass(frozen=True)
@@ -141,14 +127,59 @@ class ContactModel(abc.ABC):
     """A tissue coupled to a rigid probe through one contact strategy.
 
     Subclasses implement :meth:`_advance`; everything else (pose handling, sub-motions
-    against tunnelling, penetration, wrench, timing, landmarks, snapshots) is shared.
+    against tunnelling, penetration, wrench, timing, landmarks, snapshots) is shared. A
+    subclass states its facts as class attributes and is registered under its name with
+    :func:`tissue.contact.registry.register_contact`.
+
+    Class attributes:
+        name: the registry key (``TissueSpec(contact=name)``, ``--contact name``).
+        label: its short name in tables and figures.
+        colour: its matplotlib colour in figures.
+        params_type: its parameters' dataclass (``TissueSpec.contact_params``); built with
+            no arguments for the defaults.
+        penetration_bound_m: the largest penetration a stable step may leave [m]
+            (:class:`tissue.contact.stability.StabilityMonitor`).
+        has_tangent: whether the strategy exposes its tissue's stiffness tangent and contact
+            constraints (the finite-element strategies do), so that the wrench can be
+            linearised (:meth:`tissue.Tissue.wrench_stiffness`).
 
     Args:
         mesh: the tissue mesh.
         probe_shape: the rigid tool's geometry.
     """
 
-    method: ContactMethod
+    name: ClassVar[str]
+    label: ClassVar[str]
+    colour: ClassVar[str] = "tab:gray"
+    params_type: ClassVar[type]
+    penetration_bound_m: ClassVar[float]
+    has_tangent: ClassVar[bool] = False
+
+    @property
+    def method(self) -> str:
+        """The registry name of this model's strategy."""
+        return self.name
+
+    @classmethod
+    def settings_for(cls, spec: Any, mesh: TetMesh, materials: Any) -> tuple[Any, Any]:
+        """The ``(config, params)`` this strategy is built with for a
+        :class:`tissue.TissueSpec` (its profile, time step and ``contact_params``): the
+        profile's finite-element settings and the given parameters, else the profile's
+        (:meth:`profile_params`). A strategy with a tissue of its own (PBD) overrides this.
+        """
+        from tissue.profile import simulation_config
+
+        config = simulation_config(spec.profile, spec.tissue_dt)
+        params = spec.contact_params
+        if params is None:
+            params = cls.profile_params(spec, mesh)
+        return config, params
+
+    @classmethod
+    def profile_params(cls, spec: Any, mesh: TetMesh) -> Any:
+        """The strategy's parameters under ``spec``'s profile: the defaults unless a
+        strategy's profiles differ (prescribed displacement's node set)."""
+        return cls.params_type()
 
     def __init__(self, mesh: TetMesh, probe_shape: ProbeShape) -> None:
         self.mesh = mesh

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numba
 import numpy as np
@@ -191,7 +191,8 @@ class FEContactModel(ContactModel):
     """
 
     #: The strategy's parameter dataclass; ``params=None`` builds its defaults.
-    params_type: type = type(None)
+    params_type: ClassVar[type] = type(None)
+    has_tangent: ClassVar[bool] = True
 
     def __init__(
         self,

@@ -46,11 +46,11 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from tissue.contact.base import ContactMethod
 from tissue.contact.fe_model import FEContactModel
 from tissue.contact.penalty import PenaltyTerm, augmented_step, default_stiffness_n_per_m
+from tissue.contact.registry import register_contact
 from tissue.errors import ConfigError
-from tissue.mesh import boundary_faces
+from tissue.mesh import TetMesh, boundary_faces
 from tissue.sim.integrator import IntegrationMode
 from tissue.status import StepStatus
 from tissue.wrench_stiffness import ContactConstraints
@@ -104,13 +104,32 @@ class PrescribedParams:
             )
 
 
+@register_contact
 class PrescribedContact(FEContactModel):
     """The surface nodes under the probe follow it rigidly (Dirichlet conditions)."""
 
-    method = ContactMethod.PRESCRIBED
+    name = "prescribed"
+    label = "PrescrDispl"
+    colour = "tab:green"
+    #: Held nodes follow the probe: 0.5 mm, as the hard-cases catalogue asks of enforced
+    #: contact.
+    penetration_bound_m = 0.0005
 
     params_type = PrescribedParams
     params: PrescribedParams
+
+    @classmethod
+    def profile_params(cls, spec: Any, mesh: TetMesh) -> PrescribedParams:
+        """Robust: an online, sliding node set with the skin guarded. Paper: the node set
+        chosen at first contact, or on the published scene (``spec.scene_lesion``) the
+        scene's own set for that lesion."""
+        from tissue.profile import Profile
+
+        if Profile.parse(spec.profile) is Profile.ROBUST:
+            return PrescribedParams(online=True, sliding=True, skin_guard=True)
+        if spec.scene_lesion is not None:
+            return PrescribedParams(node_set=spec.published_node_set(mesh))
+        return PrescribedParams()
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)

@@ -7,7 +7,7 @@ A step is unstable when any of these holds:
   divergence or failure; see :class:`tissue.status.StepStatus`);
 - ``non_finite``: NaN or Inf in the node positions, the wrench or the landmarks;
 - ``penetration``: the deepest collision-surface point lies further inside the probe than
-  the method's bound (:data:`PENETRATION_BOUND_M`);
+  the method's bound (its strategy class's ``penetration_bound_m``);
 - ``blow_up``: a node moved further from rest than ``blow_up_factor`` times the probe's
   largest travel so far plus ``blow_up_margin_m`` (nothing but the probe moves the tissue);
 - ``landmark_jump``: a landmark moved further in one step than the probe did in any of the
@@ -31,19 +31,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from tissue.contact.base import ContactMethod, ContactResult
+from tissue.contact.base import ContactResult
+from tissue.contact.registry import contact_class, contact_method
 from tissue.errors import ConfigError
-
-#: Largest penetration [m] a stable step may leave, per method. LM and prescribed
-#: displacement enforce contact (0.5 mm, as the hard-cases catalogue asks); penalty leaves
-#: about 2 % of the indentation with its default k_s (0.6 mm at 30 mm), so its bound is
-#: 2 mm; PBD projects contacts, 1 mm covers its contact margin.
-PENETRATION_BOUND_M: dict[ContactMethod, float] = {
-    ContactMethod.LM: 0.0005,
-    ContactMethod.PRESCRIBED: 0.0005,
-    ContactMethod.PENALTY: 0.002,
-    ContactMethod.PBD: 0.001,
-}
 
 
 @dataclass(frozen=True)
@@ -51,8 +41,8 @@ class StabilityLimits:
     """Bounds of a stable step.
 
     Attributes:
-        penetration_m: largest penetration [m]; None takes the method's
-            :data:`PENETRATION_BOUND_M`.
+        penetration_m: largest penetration [m]; None takes the method's own
+            (its class's ``penetration_bound_m``).
         blow_up_factor: a node may move at most this many times the probe's travel ...
         blow_up_margin_m: ... plus this [m] from rest.
         landmark_jump_margin_m: a landmark may move at most the probe's largest motion in
@@ -117,17 +107,17 @@ class StabilityMonitor:
 
     def __init__(
         self,
-        method: ContactMethod | str,
+        method: str,
         rest_positions: NDArray[np.float64],
         start_probe_position: NDArray[np.float64],
         limits: StabilityLimits | None = None,
     ) -> None:
-        self.method = ContactMethod.parse(method)
+        self.method = contact_method(method)
         self.limits = limits if limits is not None else StabilityLimits()
         self.penetration_bound_m = (
             self.limits.penetration_m
             if self.limits.penetration_m is not None
-            else PENETRATION_BOUND_M[self.method]
+            else contact_class(self.method).penetration_bound_m
         )
         self._rest = np.asarray(rest_positions, dtype=np.float64)
         self._start = np.asarray(start_probe_position, dtype=np.float64).copy()
@@ -194,7 +184,7 @@ class StabilityMonitor:
             return Instability(
                 "penetration",
                 f"penetration {result.penetration_max_m * 1e3:.3f} mm beyond the "
-                f"{self.method.value} bound {self.penetration_bound_m * 1e3:.2f} mm",
+                f"{self.method} bound {self.penetration_bound_m * 1e3:.2f} mm",
             )
         allowed = self.limits.blow_up_factor * self._largest_travel + self.limits.blow_up_margin_m
         moved = float(np.sqrt(np.max(np.sum((node_positions - self._rest) ** 2, axis=1))))

@@ -3,7 +3,7 @@
 Tagliabue et al. (2020) compare their FE strategies against a position-based dynamics (PBD)
 model run in NVIDIA FleX (their ref. [10]) and note that PBD "cannot provide an estimation of
 the interaction forces". This package is that baseline as the fourth contact method
-(:class:`PBDContact`, ``ContactMethod.PBD``) behind the
+(:class:`PBDContact`, registered as ``"pbd"``) behind the
 :class:`~tissue.contact.base.ContactModel` step interface, and it does report forces.
 
 Model
@@ -58,7 +58,7 @@ door's robust profile also sets ``skin_contact`` (contact on every skin vertex).
 Calibration
 -----------
 A few sweeps do not converge the implicit step, so the compliance scales are fitted by
-:func:`~tissue.pbd_calibration.calibrate_pbd` against the FE simulator (robust, Newton,
+:func:`~tissue.pbd.calibration.calibrate_pbd` against the FE simulator (robust, Newton,
 stable neo-Hookean) on ``breast_phantom(4126)`` (E = 2850 Pa, nu = 0.49, lesions 4 x
 stiffer): a 10 mm compression of the apex by the linear probe face at 0.01 m/s, then held
 0.5 s; the objective is the relative force mismatch plus the lesion-displacement mismatch.
@@ -67,7 +67,7 @@ lesions 30.2 % (unscaled: -38 % force). Robust profile: the volume scale is the 
 own (1.0) and the deviatoric scale is fitted to the force (1.16): force within 0.3 %, lesion
 under the probe about 7 %, all lesions about 10 %. Scales hold for the mesh they were fitted
 on: the front door (:mod:`tissue.spec`) refits the deviatoric scale for each mesh it runs
-(:func:`~tissue.pbd_calibration.calibrated_pbd_config`, against robust LM, cached on disk).
+(:func:`~tissue.pbd.calibration.calibrated_pbd_config`, against robust LM, cached on disk).
 
 Limitations
 -----------

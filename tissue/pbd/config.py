@@ -16,7 +16,7 @@ import numpy as np
 from tissue.errors import ConfigError, check_setting_names
 
 #: The paper profile's deviatoric compliance scale, fitted by
-#: :func:`tissue.pbd_calibration.calibrate_pbd` (10 substeps, the boundary nodes as contact).
+#: :func:`tissue.pbd.calibration.calibrate_pbd` (10 substeps, the boundary nodes as contact).
 CALIBRATED_DEVIATORIC_COMPLIANCE_SCALE = 0.5456
 #: The paper profile's volume compliance scale, fitted with the deviatoric one.
 CALIBRATED_VOLUME_COMPLIANCE_SCALE = 0.5073

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import replace
 from typing import Any
 
 import numba as nb
@@ -19,7 +20,8 @@ from numpy.typing import NDArray
 # The package itself, for the sweep kernels the step calls: looked up there at each step so
 # that replacing ``tissue.pbd._project_tets`` (as the failure tests do) reaches the step.
 import tissue.pbd as _package
-from tissue.contact.base import ContactMethod, ContactModel
+from tissue.contact.base import ContactModel
+from tissue.contact.registry import register_contact
 from tissue.errors import ConfigError, TissueInputError
 from tissue.fem.material import TissueMaterials
 from tissue.mesh import TetMesh
@@ -42,6 +44,7 @@ from tissue.probe import ProbeShape, unit_quat_to_matrix
 from tissue.status import StepStatus
 
 
+@register_contact
 class PBDContact(ContactModel):
     """An XPBD tetrahedral tissue pressed by a rigid probe (the paper's PBD baseline).
 
@@ -60,7 +63,7 @@ class PBDContact(ContactModel):
         Not converged per step: XPBD with a few sweeps is softer than the material and only
         approaches the FE through the calibrated compliance scales, which hold for the
         calibration's mesh resolution, substep count and loading; other meshes or settings
-        need :func:`~tissue.pbd_calibration.calibrate_pbd` again (changing the substeps alone
+        need :func:`~tissue.pbd.calibration.calibrate_pbd` again (changing the substeps alone
         moves the force by tens of percent). Too few substeps let the hard contact crush the
         surface tets (5 substeps end INVERTED at level 4126). With the defaults contact acts
         on the volume's boundary nodes, so a collision surface that bulges between them (or
@@ -74,7 +77,30 @@ class PBDContact(ContactModel):
         sweep uses two threads.
     """
 
-    method = ContactMethod.PBD
+    name = "pbd"
+    label = "PBD"
+    colour = "tab:red"
+    params_type = PBDConfig
+    #: PBD projects contacts; 1 mm covers its contact margin.
+    penetration_bound_m = 0.001
+
+    @classmethod
+    def settings_for(cls, spec: Any, mesh: TetMesh, materials: Any) -> tuple[Any, Any]:
+        """PBD's own tissue settings (``config``; no separate ``params``): the given
+        :class:`PBDConfig`, else the profile's (:meth:`PBDConfig.for_mode`) at the spec's
+        time step, calibrated for ``mesh`` against robust LM
+        (:func:`tissue.pbd.calibration.calibrated_pbd_config`, cached on disk). The robust
+        profile adds contact points on the skin between the boundary nodes."""
+        if spec.contact_params is not None:
+            return spec.contact_params, None
+        from tissue.pbd.calibration import calibrated_pbd_config
+        from tissue.profile import Profile
+
+        robust = Profile.parse(spec.profile) is Profile.ROBUST
+        base = replace(
+            PBDConfig.for_mode(spec.profile), tissue_dt=spec.tissue_dt, skin_contact=robust
+        )
+        return calibrated_pbd_config(mesh, materials, base), None
 
     def __init__(
         self,

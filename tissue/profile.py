@@ -1,0 +1,53 @@
+"""The two profiles, ``paper`` and ``robust``: what each decides, in one place.
+
+- ``paper``: as Tagliabue et al. 2020 -- one linearised backward-Euler solve per step, CG
+  capped at 25 iterations; prescribed displacement with the node set chosen at first contact
+  (on the published scene, its own set for the lesion); penalty with plain springs; the
+  10-substep XPBD baseline.
+- ``robust``: Newton to a tolerance with line search, PSD-projected tangents, step
+  subdivision and an inversion barrier; penalty augmented to 0.1 mm of penetration;
+  prescribed displacement with an online, sliding (frictionless) node set on the volume's
+  boundary and the skin between its nodes kept out of the probe
+  (:class:`tissue.contact.prescribed.PrescribedParams`, ``skin_guard``); the 60-substep XPBD
+  tissue with a volume floor.
+
+Either way a PBD tissue's compliance scales are calibrated for the mesh it runs on
+(:func:`tissue.pbd.calibration.calibrated_pbd_config`, cached on disk).
+
+:func:`tissue.spec.resolve_spec` asks each contact strategy for its settings under the
+spec's profile (:meth:`tissue.contact.base.ContactModel.settings_for`); the strategies read
+the profile's choices from here.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from tissue.choices import Choice
+
+if TYPE_CHECKING:
+    from tissue.sim.simulator import SimulationConfig
+
+#: The paper's tissue time step [s] (Tagliabue et al. 2020, section 2.2: 50 Hz).
+PAPER_TISSUE_DT_S = 0.02
+
+
+class Profile(Choice):
+    """How faithfully to the paper, or how robustly, a tissue is simulated (module docstring)."""
+
+    PAPER = "paper"
+    ROBUST = "robust"
+
+    @classmethod
+    def noun(cls) -> str:
+        return "profile"
+
+
+def simulation_config(
+    profile: Profile | str, tissue_dt: float = PAPER_TISSUE_DT_S
+) -> SimulationConfig:
+    """The finite-element simulation's settings under ``profile`` with time step
+    ``tissue_dt`` [s] (:class:`tissue.sim.simulator.SimulationConfig`)."""
+    from tissue.sim.simulator import SimulationConfig
+
+    return SimulationConfig(mode=Profile.parse(profile).value, tissue_dt=tissue_dt)
