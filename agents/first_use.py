@@ -18,13 +18,15 @@ from typing import Any
 def _kernels() -> list[Any]:
     """A sample of the kernels a simulation compiles, one per module that has them."""
     from tissue.contact import lagrange, penalty
-    from tissue.fem.kernels import element_pass
+    from tissue.fem.kernels import anp_patch_pass, element_pass, gather_elements
     from tissue.pbd import _project_tets
     from tissue.sim.solvers import _product
 
     return [
         element_pass.parallel,
         element_pass.serial,
+        gather_elements.parallel,
+        anp_patch_pass.parallel,
         _product.serial,
         _project_tets,
         lagrange.projected_gauss_seidel,

@@ -6,8 +6,8 @@ import numba
 import numpy as np
 import pytest
 
-from tissue.contact import contact_method, make_contact_model
 from tissue.contact import base as contact_base
+from tissue.contact import contact_method, make_contact_model
 from tissue.contact.lagrange import LagrangeParams
 from tissue.contact.penalty import PenaltyParams
 from tissue.contact.placement import first_contact_pose

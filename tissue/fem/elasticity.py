@@ -376,7 +376,7 @@ class Elasticity:
 
     def _element_stage(self, x: NDArray[np.float64], project: bool, stage: int) -> float:
         """Run the ANP patch pass (if any) and the element pass up to ``stage`` (a
-        ``fem_kernels.STAGE_*``); return the energy [J]."""
+        ``tissue.fem.kernels.STAGE_*``); return the energy [J]."""
         if project and self._mode_count.shape[0] != self.tet_count:
             t = self.tet_count
             self._mode_count = np.zeros(t, dtype=np.int64)
@@ -530,7 +530,8 @@ def _counts_to_ptr(counts: NDArray[np.int64]) -> NDArray[np.int64]:
 def _block_csr_structure(
     block_ptr: NDArray[np.int64], block_cols: NDArray[np.int64]
 ) -> tuple[NDArray[np.integer], NDArray[np.integer]]:
-    """CSR indices/indptr of a 3x3-block pattern, in the layout of :mod:`fem_kernels`."""
+    """CSR indices/indptr of a 3x3-block pattern, in the layout of
+    :mod:`tissue.fem.kernels.assembly`."""
     node_count = block_ptr.shape[0] - 1
     block_count = block_cols.shape[0]
     width = np.diff(block_ptr)
