@@ -327,14 +327,14 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     if args.command == "mesh":
         return _mesh(args.level, args.out)
     if args.command == "bench" and args.bench == "tissue":
-        from agents.tissue_benchmark import run_tissue_benchmark
+        from agents.bench.tissue import run_tissue_benchmark
 
         if args.repeats < 1:
             parser.error(f"--repeats must be >= 1; got {args.repeats}")
         run_tissue_benchmark(args.levels, args.repeats, args.json, command=args.command_line)
         return 0
     if args.command == "bench" and args.bench == "contact":
-        from agents.contact_benchmark import run_contact_benchmark
+        from agents.bench.contact import run_contact_benchmark
         from tissue.contact import contact_method
 
         methods = _names(args.methods, contact_method)
@@ -344,7 +344,7 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         run_contact_benchmark(args.levels, methods, modes, args.json, command=args.command_line)
         return 0
     if args.command == "bench" and args.bench == "env":
-        from agents.env_benchmark import run_env_benchmark
+        from agents.bench.env import run_env_benchmark
         from tissue.contact import contact_method
 
         methods = _names(args.methods, contact_method)
@@ -356,7 +356,7 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         )
         return 0
     if args.command == "bench" and args.bench == "peer":
-        from agents.peer_benchmark import run_peer_benchmark
+        from agents.bench.peer import run_peer_benchmark
 
         if not args.sim_seconds > 0:
             parser.error(f"--sim-seconds must be > 0; got {args.sim_seconds}")

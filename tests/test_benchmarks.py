@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from agents.bench.tissue import print_robust_targets, robust_step_target
 from agents.cli import main
-from agents.tissue_benchmark import print_robust_targets, robust_step_target
 from tissue.contact.penalty import PenaltyParams
 
 

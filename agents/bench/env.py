@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from agents.bench_report import BenchRecord, MarkdownTable, code_revision
-from agents.contact_benchmark import threading_environment
+from agents.bench.contact import threading_environment
+from agents.bench.report import BenchRecord, MarkdownTable, code_revision
 from agents.outputs import write_json
 
 DEFAULT_IDS = ("probegym/BreastCompress-v0",)

@@ -46,9 +46,9 @@ from typing import Any
 
 import numpy as np
 
-from agents.bench_report import BenchRecord, MarkdownTable
+from agents.bench.report import BenchRecord, MarkdownTable
+from agents.bench.tissue import print_robust_targets, robust_step_target
 from agents.outputs import write_json
-from agents.tissue_benchmark import print_robust_targets, robust_step_target
 from tissue.contact import make_contact_model
 from tissue.contact.prescribed import PrescribedParams
 from tissue.mesh.phantom import PHANTOM_LEVELS, breast_phantom

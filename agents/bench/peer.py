@@ -72,8 +72,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from agents.bench_report import BenchRecord, MarkdownTable
-from agents.contact_benchmark import threading_environment
+from agents.bench.contact import threading_environment
+from agents.bench.report import BenchRecord, MarkdownTable
 from agents.outputs import write_json
 from tissue.contact import make_contact_model
 from tissue.contact.prescribed import PrescribedParams

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.bench_report import BenchRecord, MarkdownTable
+from agents.bench.report import BenchRecord, MarkdownTable
 from agents.outputs import write_json
 from tissue.fem.material import TissueMaterials
 from tissue.mesh import top_surface_nodes
