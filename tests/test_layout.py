@@ -72,3 +72,72 @@ def test_the_import_check_sees_a_private_import(tmp_path, monkeypatch) -> None:
     (tmp_path / "tissue").mkdir()
     with pytest.raises(AssertionError, match="public names"):
         layout.test_imports_go_one_way_and_envs_use_only_the_front_door()
+
+
+#: tissue's layers, lowest first (docs/architecture.md): a module imports only from its own
+#: layer or lower ones, at module level or inside a function.
+TISSUE_LAYERS = (
+    ("tissue.errors", "tissue.choices", "tissue.status", "tissue.threads", "tissue.profile"),
+    ("tissue.mesh", "tissue.probe"),
+    ("tissue.fem",),
+    ("tissue.sim",),
+    ("tissue.contact",),
+    ("tissue.pbd",),
+    ("tissue.spec", "tissue.model", "tissue.lesions", "tissue.surface_mesh", "tissue"),
+)
+
+
+def _tissue_unit(module: str) -> str:
+    """``tissue.<sub-package or module>``, or ``tissue`` itself."""
+    return ".".join(module.split(".")[:2])
+
+
+def _layer(unit: str) -> int:
+    for rank, units in enumerate(TISSUE_LAYERS):
+        if unit in units:
+            return rank
+    raise AssertionError(f"{unit} is in no layer of TISSUE_LAYERS: add it (and to the docs)")
+
+
+def test_tissue_layers_import_only_downwards() -> None:
+    for path, module, _ in _imports("tissue"):
+        if module.split(".")[0] != "tissue":
+            continue
+        relative = Path(path).relative_to(ROOT).with_suffix("").parts
+        importer = "tissue" if relative == ("tissue", "__init__") else ".".join(relative[:2])
+        imported = _tissue_unit(module)
+        assert _layer(imported) <= _layer(importer), (
+            f"{path} imports {module}: {imported} lies above {importer} in TISSUE_LAYERS"
+        )
+
+
+def test_the_architecture_page_names_every_package() -> None:
+    """docs/architecture.md says what every package and sub-package owns, and names none
+    that does not exist."""
+    import re
+
+    page = (ROOT / "docs" / "architecture.md").read_text()
+    named = set(re.findall(r"`((?:tissue|envs|agents)(?:\.\w+)*)`", page))
+    packages = {
+        ".".join(init.parent.relative_to(ROOT).parts)
+        for top in ("tissue", "envs", "agents")
+        for init in (ROOT / top).rglob("__init__.py")
+    }
+    assert packages - named == set(), "packages the architecture page does not describe"
+    for name in named:
+        path = ROOT.joinpath(*name.split("."))
+        assert path.is_dir() or path.with_suffix(".py").is_file(), f"{name} does not exist"
+    for units in TISSUE_LAYERS:
+        for unit in units:
+            assert unit == "tissue" or f"`{unit}`" in page, f"{unit} is not on the page"
+
+
+def test_the_layer_check_sees_an_upward_import(tmp_path, monkeypatch) -> None:
+    """The layer check fails on a mesh module that reaches up into contact, even lazily."""
+    layout = sys.modules[__name__]
+    fake = tmp_path / "tissue" / "mesh"
+    fake.mkdir(parents=True)
+    (fake / "bad.py").write_text("def f():\n    from tissue.contact import registry\n")
+    monkeypatch.setattr(layout, "ROOT", tmp_path)
+    with pytest.raises(AssertionError, match="lies above"):
+        layout.test_tissue_layers_import_only_downwards()

@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 from tissue.contact import make_contact_model
 from tissue.contact.base import ContactModel, ContactResult
 from tissue.contact.placement import first_contact_pose, radial_roll_rad, skin_normal_above
+from tissue.contact.wrench_stiffness import wrench_stiffness
 from tissue.errors import TissueInputError
 from tissue.lesions import Lesion, LesionTracker
 from tissue.probe import ProbeShape, quat_to_matrix
@@ -31,7 +32,6 @@ from tissue.spec import ResolvedTissue, TissueSpec, resolve_spec
 from tissue.status import StepStatus
 from tissue.surface_mesh import SurfaceMesh, SurfaceView
 from tissue.threads import one_thread_below
-from tissue.wrench_stiffness import wrench_stiffness
 
 
 @dataclass(frozen=True)
@@ -323,8 +323,8 @@ class Tissue:
         (6 x 6, world frame, about the probe origin): K = -d(force, torque) / d(translation,
         rotation) [N/m, N/rad; N m/m, N m/rad], symmetric positive semi-definite where the
         probe presses. The tissue's static response, linearised at the present state and
-        contact set; see :mod:`tissue.wrench_stiffness` for how and what it costs. None for
-        a strategy without a tangent (PBD; :attr:`has_tangent`)."""
+        contact set; see :mod:`tissue.contact.wrench_stiffness` for how and what it costs.
+        None for a strategy without a tangent (PBD; :attr:`has_tangent`)."""
         # Under the step's thread rule: a small tissue's kernels on one thread (tissue.threads).
         with one_thread_below(3 * self._resolved.mesh.node_count, SERIAL_STEP_UNKNOWNS):
             return wrench_stiffness(self._model)

@@ -21,12 +21,7 @@ the profile's choices from here.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 from tissue.choices import Choice
-
-if TYPE_CHECKING:
-    from tissue.sim.simulator import SimulationConfig
 
 #: The paper's tissue time step [s] (Tagliabue et al. 2020, section 2.2: 50 Hz).
 PAPER_TISSUE_DT_S = 0.02
@@ -41,13 +36,3 @@ class Profile(Choice):
     @classmethod
     def noun(cls) -> str:
         return "profile"
-
-
-def simulation_config(
-    profile: Profile | str, tissue_dt: float = PAPER_TISSUE_DT_S
-) -> SimulationConfig:
-    """The finite-element simulation's settings under ``profile`` with time step
-    ``tissue_dt`` [s] (:class:`tissue.sim.simulator.SimulationConfig`)."""
-    from tissue.sim.simulator import SimulationConfig
-
-    return SimulationConfig(mode=Profile.parse(profile).value, tissue_dt=tissue_dt)

@@ -24,6 +24,7 @@ from tissue.errors import TissueInputError
 from tissue.mesh import TetMesh, boundary_faces
 from tissue.mesh.embedding import BarycentricEmbedding
 from tissue.probe import Probe, ProbeShape
+from tissue.sim.simulator import SimulationConfig
 from tissue.sim.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.status import StepStatus, worst
 from tissue.threads import one_thread_below
@@ -167,9 +168,7 @@ class ContactModel(abc.ABC):
         profile's finite-element settings and the given parameters, else the profile's
         (:meth:`profile_params`). A strategy with a tissue of its own (PBD) overrides this.
         """
-        from tissue.profile import simulation_config
-
-        config = simulation_config(spec.profile, spec.tissue_dt)
+        config = SimulationConfig(mode=spec.profile, tissue_dt=spec.tissue_dt)
         params = spec.contact_params
         if params is None:
             params = cls.profile_params(spec, mesh)

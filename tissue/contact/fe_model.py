@@ -11,6 +11,7 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from tissue.contact.base import ContactModel, SurfacePoints, boundary_surface, contact_surface
+from tissue.contact.wrench_stiffness import ContactConstraints
 from tissue.errors import ConfigError
 from tissue.fem.material import TissueMaterials
 from tissue.mesh import TetMesh, node_dofs
@@ -18,7 +19,6 @@ from tissue.probe import Probe, ProbeShape
 from tissue.sim.integrator import IncrementalPotential, IntegrationMode
 from tissue.sim.simulator import SimulationConfig, TissueSimulator
 from tissue.sim.solvers import DirectFactorizer, Factorization
-from tissue.wrench_stiffness import ContactConstraints
 
 # In robust mode, contact acts on the volume's boundary nodes instead of the collision
 # surface once the boundary has this many times more points. The collision surface (~500
@@ -234,8 +234,8 @@ class FEContactModel(ContactModel):
     def step_tangent(self) -> tuple[Factorization, NDArray[np.bool_]]:
         """A factorisation of the tissue's static tangent at the present state (the elastic
         stiffness K(x), contact left out, the fixed base eliminated) and the eliminated dofs,
-        (3N,) bool: for :func:`tissue.wrench_stiffness.wrench_stiffness`. Leaves the step's
-        own solver untouched."""
+        (3N,) bool: for :func:`tissue.contact.wrench_stiffness.wrench_stiffness`. Leaves the
+        step's own solver untouched."""
         sim = self.sim
         integrator = sim.integrator
         fixed = node_dofs(self.mesh.fixed_nodes)

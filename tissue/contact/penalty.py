@@ -74,6 +74,7 @@ from numpy.typing import NDArray
 from tissue.contact.base import SurfacePoints
 from tissue.contact.fe_model import FEContactModel, detect_contacts
 from tissue.contact.registry import register_contact
+from tissue.contact.wrench_stiffness import ContactConstraints
 from tissue.errors import ConfigError
 from tissue.fem.material import TissueMaterials
 from tissue.mesh import TetMesh
@@ -82,7 +83,6 @@ from tissue.sim.integrator import IntegrationMode, TermEvaluation
 from tissue.sim.simulator import StepResult, TissueSimulator
 from tissue.sim.solvers import RankOneTerms
 from tissue.status import StepStatus
-from tissue.wrench_stiffness import ContactConstraints
 
 # The default k_s makes a contact point as stiff as this many times the tissue under it
 # (E times the surface's mean edge length): penetrations stay about 2 % of the indentation.

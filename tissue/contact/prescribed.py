@@ -49,11 +49,11 @@ from numpy.typing import NDArray
 from tissue.contact.fe_model import FEContactModel
 from tissue.contact.penalty import PenaltyTerm, augmented_step, default_stiffness_n_per_m
 from tissue.contact.registry import register_contact
+from tissue.contact.wrench_stiffness import ContactConstraints
 from tissue.errors import ConfigError
 from tissue.mesh import TetMesh, boundary_faces
 from tissue.sim.integrator import IntegrationMode
 from tissue.status import StepStatus
-from tissue.wrench_stiffness import ContactConstraints
 
 # Re-solves of a guarded step at most (see PrescribedParams.skin_guard).
 _GUARD_ROUNDS = 5

@@ -19,10 +19,10 @@ from numpy.typing import NDArray
 from tissue.contact.compliance import KeptCompliance
 from tissue.contact.fe_model import Contacts, FEContactModel
 from tissue.contact.lagrange.params import LagrangeParams
+from tissue.contact.wrench_stiffness import ContactConstraints
 from tissue.errors import TissueInputError
 from tissue.sim.integrator import ChordHandOver, extrapolated_positions
 from tissue.sim.solvers import SolveReport
-from tissue.wrench_stiffness import ContactConstraints
 
 # What a failed attempt is undone to: positions [m], velocities [m/s], time [s], warm start [N].
 _Checkpoint = tuple[NDArray[np.float64], NDArray[np.float64], float, NDArray[np.float64]]
