@@ -10,11 +10,11 @@ from tissue.errors import ConfigError
 from tissue.fem.material import TissueMaterials
 from tissue.mesh import top_surface_nodes
 from tissue.mesh.phantom import breast_phantom, describe_mesh
+from tissue.profile import PAPER_PROBE_SPEED_M_S
 from tissue.sim.simulator import SimulationConfig, TissueSimulator
 
 # The linear probe's face, about 53 x 13 mm (us_probe_collision.stl of the published scene).
 PROBE_FACE_HALF_SIZE_M = (0.0265, 0.0065)
-PROBE_SPEED_M_S = 0.01
 
 
 #: The deepest demo press [m]: the study's deepest, past which the probe nears the base.
@@ -39,10 +39,11 @@ def run_demo(level: int = 4126, depth_m: float = 0.01, mode: str = "robust") -> 
     )
     top = mesh.nodes[candidates, 2].max()
     dt = sim.config.tissue_dt
-    step_count = int(np.ceil(depth_m / (PROBE_SPEED_M_S * dt)))
+    step_count = int(np.ceil(depth_m / (PAPER_PROBE_SPEED_M_S * dt)))
     print(
         f"pressing a flat 53 x 13 mm probe face {depth_m * 1e3:.1f} mm into the apex at "
-        f"{PROBE_SPEED_M_S * 1e3:.0f} mm/s ({step_count} steps of {dt * 1e3:.0f} ms, {mode} mode; "
+        f"{PAPER_PROBE_SPEED_M_S * 1e3:.0f} mm/s ({step_count} steps of {dt * 1e3:.0f} ms, "
+        f"{mode} mode; "
         "surface nodes under the face follow it once reached)"
     )
     header = ("depth mm", "nodes", "force N", "lesion 1 moved mm", "step ms")
@@ -50,7 +51,7 @@ def run_demo(level: int = 4126, depth_m: float = 0.01, mode: str = "robust") -> 
     rest_landmarks = sim.landmark_positions()
     times = []
     for step in range(1, step_count + 1):
-        depth = min(depth_m, step * PROBE_SPEED_M_S * dt)
+        depth = min(depth_m, step * PAPER_PROBE_SPEED_M_S * dt)
         face_z = top - depth
         in_contact = candidates[sim.positions[candidates, 2] >= face_z]
         sim.prescribe(in_contact, np.array([0.0, 0.0, face_z]), axes=(2,))

@@ -22,9 +22,26 @@ the profile's choices from here.
 from __future__ import annotations
 
 from tissue.choices import Choice
+from tissue.errors import ConfigError
 
-#: The paper's tissue time step [s] (Tagliabue et al. 2020, section 2.2: 50 Hz).
+#: The paper's tissue time step h [s] (Tagliabue et al. 2020, section 3: the same for every
+#: simulation).
 PAPER_TISSUE_DT_S = 0.02
+#: The paper's probe speed [m/s] (section 3: "the US probe moves at fixed velocity").
+PAPER_PROBE_SPEED_M_S = 0.01
+
+
+def check_tissue_dt(value: object) -> float:
+    """``value`` as a tissue time step [s]; a ConfigError naming it unless it is a number in
+    (0, 1]."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ConfigError(f"tissue_dt must be a number of seconds; got {value!r}")
+    if not 0.0 < float(value) <= 1.0:
+        raise ConfigError(
+            f"tissue_dt must be a time step in seconds in (0, 1]; got {value!r} (the paper "
+            f"uses {PAPER_TISSUE_DT_S})"
+        )
+    return float(value)
 
 
 class Profile(Choice):

@@ -22,7 +22,7 @@ from tissue.errors import ConfigError, check_setting_names
 from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.mesh import TetMesh
 from tissue.probe import ProbeShape, parse_probe_spec
-from tissue.profile import Profile
+from tissue.profile import PAPER_TISSUE_DT_S, Profile, check_tissue_dt
 
 #: ``TissueSpec(mesh=PUBLISHED_SCENE)`` loads the published scene from where the project
 #: looks for it (``PROBEGYM_PAPER_SCENE``, then ``shared/paper-scene`` beside the checkout).
@@ -45,7 +45,8 @@ class TissueSpec:
             ``lm``, ``prescribed``, ``pbd`` or one registered with
             :func:`tissue.register_contact`.
         profile: ``paper`` or ``robust`` (:mod:`tissue.profile`).
-        tissue_dt: the tissue time step [s], in (0, 1] (the paper's 0.02).
+        tissue_dt: the tissue time step [s], in (0, 1] (the paper's,
+            :data:`tissue.profile.PAPER_TISSUE_DT_S`).
         young_pa: the bulk tissue's Young's modulus [Pa] (default 2850).
         poisson: the bulk tissue's Poisson ratio (default 0.49).
         lesion_stiffness_ratio: E_lesion / E_tissue (default 4).
@@ -65,7 +66,7 @@ class TissueSpec:
     mesh: int | str | os.PathLike[str] | TetMesh = 1363
     contact: str = "lm"
     profile: str = "robust"
-    tissue_dt: float = 0.02
+    tissue_dt: float = PAPER_TISSUE_DT_S
     young_pa: float | None = None
     poisson: float | None = None
     lesion_stiffness_ratio: float | None = None
@@ -81,14 +82,7 @@ class TissueSpec:
         method = contact_method(self.contact)
         object.__setattr__(self, "contact", method)
         object.__setattr__(self, "profile", Profile.parse(self.profile).value)
-        if isinstance(self.tissue_dt, bool) or not isinstance(self.tissue_dt, (int, float)):
-            raise ConfigError(f"tissue_dt must be a number of seconds; got {self.tissue_dt!r}")
-        if not 0.0 < float(self.tissue_dt) <= 1.0:
-            raise ConfigError(
-                f"tissue_dt must be a time step in seconds in (0, 1]; got {self.tissue_dt!r} "
-                "(the paper uses 0.02)"
-            )
-        object.__setattr__(self, "tissue_dt", float(self.tissue_dt))
+        object.__setattr__(self, "tissue_dt", check_tissue_dt(self.tissue_dt))
         overrides = (self.young_pa, self.poisson, self.lesion_stiffness_ratio)
         if self.materials is not None:
             if any(value is not None for value in overrides):

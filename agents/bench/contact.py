@@ -54,13 +54,14 @@ from tissue.contact.prescribed import PrescribedParams
 from tissue.mesh.phantom import PHANTOM_LEVELS, breast_phantom
 from tissue.pbd import PBDConfig
 from tissue.probe import Probe, linear_probe
+from tissue.profile import PAPER_PROBE_SPEED_M_S, PAPER_TISSUE_DT_S
 from tissue.sim.simulator import SimulationConfig
 
 DEFAULT_LEVELS = tuple(level for level in PHANTOM_LEVELS if level <= 26220)
 DEFAULT_METHODS = ("penalty", "lm", "prescribed", "pbd")
 DEFAULT_MODES = ("paper", "robust")
-# Probe advance per 0.02 s step at the paper's 0.01 m/s [m].
-STEP_ADVANCE_M = 0.0002
+# Probe advance per tissue step at the paper's speed and step [m].
+STEP_ADVANCE_M = PAPER_PROBE_SPEED_M_S * PAPER_TISSUE_DT_S
 # The probe starts this far above the apex [m], so that its first step already touches:
 # robust mode does not converge on a step taken at rest with no load (480 Newton
 # iterations, 4 minutes per step on the 26k level when this was written).

@@ -81,17 +81,16 @@ from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.mesh import TetMesh
 from tissue.mesh.phantom import breast_phantom
 from tissue.probe import BoxProbe, Probe
+from tissue.profile import PAPER_PROBE_SPEED_M_S, PAPER_TISSUE_DT_S
 from tissue.sim.simulator import SimulationConfig
 
 DEFAULT_LEVELS = (623, 4126, 26220)
 # Probe face (LX along world x, LZ along world y) and depth behind the face [m].
 PROBE_FACE_M = (0.053, 0.013)
 PROBE_DEPTH_M = 0.010
-PROBE_SPEED_M_S = 0.01
 # Just above the apex: robust mode does not converge on a step taken at rest with no load
 # (480 Newton iterations, minutes per step on the 26k level when this was written).
 START_CLEARANCE_M = 0.0001
-TISSUE_DT_S = 0.02
 # Our methods, the first is the headline one (exact contact); prescribed runs online.
 OURS_METHODS = ("lm", "prescribed", "penalty")
 OURS_MODES = ("paper", "robust")
@@ -249,7 +248,7 @@ def _run_mujoco(
         return record
 
     step_count = int(round(sim_seconds / settings.timestep_s))
-    advance = PROBE_SPEED_M_S * settings.timestep_s
+    advance = PAPER_PROBE_SPEED_M_S * settings.timestep_s
     start_z = float(data.mocap_pos[0, 2])
     half_x, half_y = PROBE_FACE_M[0] / 2, PROBE_FACE_M[1] / 2
     in_footprint = (np.abs(mesh.nodes[:, 0] - face[0]) <= half_x) & (
@@ -366,19 +365,19 @@ def run_ours(
     mesh: TetMesh, method: str, mode: str, sim_seconds: float, reference: NDArray[np.float64]
 ) -> dict[str, Any]:
     """Our dynamic press at tissue_dt = 0.02 s; timings, status and lesion 1 error [m]."""
-    travel = PROBE_SPEED_M_S * sim_seconds
-    config = SimulationConfig(mode=mode, tissue_dt=TISSUE_DT_S)
+    travel = PAPER_PROBE_SPEED_M_S * sim_seconds
+    config = SimulationConfig(mode=mode, tissue_dt=PAPER_TISSUE_DT_S)
     samples, statuses, result = _press_ours(
-        mesh, method, config, PROBE_SPEED_M_S * TISSUE_DT_S, travel
+        mesh, method, config, PAPER_PROBE_SPEED_M_S * PAPER_TISSUE_DT_S, travel
     )
     lesion = np.asarray(result.landmarks[0], dtype=np.float64)
     stopped = "stopped_by_wall_budget" in statuses
-    completed = len(samples) * TISSUE_DT_S
+    completed = len(samples) * PAPER_TISSUE_DT_S
     return {
         "method": method,
         "mode": mode,
         "completed_sim_s": completed,
-        **_timing(samples, TISSUE_DT_S),
+        **_timing(samples, PAPER_TISSUE_DT_S),
         "status_counts": dict(statuses),
         "force_n": float(result.force_world[2]),
         "penetration_max_m": float(result.penetration_max_m),
@@ -392,7 +391,7 @@ def benchmark_level(level: int, sim_seconds: float) -> dict[str, Any]:
     """One level: reference, ours (every method and mode), MuJoCo (every variant)."""
     mesh = breast_phantom(level)
     assert mesh.landmarks is not None
-    travel = PROBE_SPEED_M_S * sim_seconds
+    travel = PAPER_PROBE_SPEED_M_S * sim_seconds
     rest = mesh.landmarks.rest_positions[0]
     reference, reference_info = reference_lesion(mesh, travel)
     ours = []
@@ -601,7 +600,7 @@ def run_peer_benchmark(
     levels = list(levels or DEFAULT_LEVELS)
     print(
         f"probegym bench peer — box probe {PROBE_FACE_M[0] * 1e3:.0f} x "
-        f"{PROBE_FACE_M[1] * 1e3:.0f} mm into the apex at {PROBE_SPEED_M_S} m/s for "
+        f"{PROBE_FACE_M[1] * 1e3:.0f} mm into the apex at {PAPER_PROBE_SPEED_M_S} m/s for "
         f"{sim_seconds} s ({platform.processor() or platform.machine()})"
     )
     records: list[dict[str, Any]] = []

@@ -21,13 +21,14 @@ from agents.outputs import write_json
 from tissue.fem.material import TissueMaterials
 from tissue.mesh import top_surface_nodes
 from tissue.mesh.phantom import breast_phantom
+from tissue.profile import PAPER_PROBE_SPEED_M_S, PAPER_TISSUE_DT_S
 from tissue.sim.simulator import SimulationConfig, TissueSimulator
 from tissue.sim.solvers import ConstrainedSystem, DirectFactorizer, LinearSolver, LinearSolverConfig
 
 DEFAULT_LEVELS = (623, 1363, 2539, 4126, 7369, 12861, 26220)
 PROBE_FACE_HALF_SIZE_M = (0.0265, 0.0065)
-# Probe advance per 0.02 s step at the paper's 0.01 m/s.
-STEP_ADVANCE_M = 0.0002
+# Probe advance per tissue step at the paper's speed and step [m].
+STEP_ADVANCE_M = PAPER_PROBE_SPEED_M_S * PAPER_TISSUE_DT_S
 # The state the timings are taken in: this far into a compression.
 PRELOAD_DEPTH_M = 0.004
 # Surface nodes this far below the apex, under the face, move with the probe (a contact patch).

@@ -17,16 +17,13 @@ from tissue.choices import Choice
 from tissue.contact import contact_method
 from tissue.errors import ConfigError
 from tissue.mesh.phantom import PHANTOM_LEVELS, parse_level
-from tissue.profile import Profile
+from tissue.profile import PAPER_PROBE_SPEED_M_S, Profile
 
 #: The published scene's own volume mesh (9,295 tets), as a level of the study.
 NATIVE_LEVEL = 0
 #: Synthetic default depths past first contact [m]: 10, 20, 25, 30 mm (the published
 #: poses reach 9-29 mm).
 DEFAULT_DEPTHS_M = (0.01, 0.02, 0.025, 0.03)
-#: The probe's speed [m/s] and the tissue step [s], as the paper.
-PAPER_SPEED_M_S = 0.01
-PAPER_DT_S = 0.02
 #: Steps a cell may hold still at each depth to settle; it stops earlier once no node moves
 #: faster than 0.1 mm/s (see :data:`agents.compress.ACCURATE_SETTLE_STEPS`).
 STUDY_SETTLE_STEPS = ACCURATE_SETTLE_STEPS
@@ -119,7 +116,7 @@ class StudySpec:
     configs: tuple[Profile, ...] = (Profile.PAPER, Profile.ROBUST)
     depths_m: tuple[float, ...] = DEFAULT_DEPTHS_M
     reference_level: int = PHANTOM_LEVELS[-1]
-    speed_m_s: float = PAPER_SPEED_M_S
+    speed_m_s: float = PAPER_PROBE_SPEED_M_S
     measured_csv: Path | None = field(default=None)
     settle_steps: int = STUDY_SETTLE_STEPS
     reference_kind: ReferenceKind = ReferenceKind.DYNAMIC

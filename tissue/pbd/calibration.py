@@ -25,6 +25,7 @@ from tissue.mesh import TetMesh, boundary_faces
 from tissue.mesh.phantom import breast_phantom
 from tissue.pbd import PBDConfig, PBDContact
 from tissue.probe import LinearProbeFace, Probe, ProbeShape, quat_to_matrix
+from tissue.profile import PAPER_PROBE_SPEED_M_S, PAPER_TISSUE_DT_S
 from tissue.sim.simulator import SimulationConfig, TissueSimulator
 from tissue.status import SEVERITY, StepStatus
 
@@ -133,9 +134,9 @@ def fe_compression(
     mesh: TetMesh,
     materials: TissueMaterials | None = None,
     depth_m: float = 0.01,
-    speed_m_s: float = 0.01,
+    speed_m_s: float = PAPER_PROBE_SPEED_M_S,
     hold_s: float = 0.5,
-    tissue_dt: float = 0.02,
+    tissue_dt: float = PAPER_TISSUE_DT_S,
 ) -> CompressionResponse:
     """The FE reference: the linear probe face pressed into the apex by prescribed nodes.
 
@@ -174,9 +175,9 @@ def lm_compression(
     mesh: TetMesh,
     materials: TissueMaterials | None = None,
     depth_m: float = 0.01,
-    speed_m_s: float = 0.01,
+    speed_m_s: float = PAPER_PROBE_SPEED_M_S,
     hold_s: float = 0.5,
-    tissue_dt: float = 0.02,
+    tissue_dt: float = PAPER_TISSUE_DT_S,
 ) -> CompressionResponse:
     """The reference of a per-mesh calibration: the linear probe face pressed into the mesh
     at the centre of its plan by robust Lagrange multipliers (exact frictionless contact on
@@ -201,7 +202,7 @@ def pbd_compression(
     materials: TissueMaterials | None = None,
     config: PBDConfig | None = None,
     depth_m: float = 0.01,
-    speed_m_s: float = 0.01,
+    speed_m_s: float = PAPER_PROBE_SPEED_M_S,
     hold_s: float = 0.5,
     on_skin: bool = False,
 ) -> CompressionResponse:

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from tissue.errors import ConfigError, check_setting_names
+from tissue.profile import PAPER_TISSUE_DT_S, check_tissue_dt
 
 #: The paper profile's deviatoric compliance scale, fitted by
 #: :func:`tissue.pbd.calibration.calibrate_pbd` (10 substeps, the boundary nodes as contact).
@@ -47,7 +48,7 @@ class PBDConfig:
     """Settings of the XPBD tissue (see :mod:`tissue.pbd` for the model).
 
     Attributes:
-        tissue_dt: the tissue time step [s] (0.02 s as the paper), > 0 and <= 1.
+        tissue_dt: the tissue time step [s] (the paper's by default), > 0 and <= 1.
         substeps: substeps per tissue step (>= 1); each is one prediction and ``iterations``
             Gauss-Seidel sweeps. Substeps converge far better than iterations (Macklin et al.
             2019), so keep ``iterations`` at 1 and raise this for stiffness.
@@ -86,7 +87,7 @@ class PBDConfig:
             (a few mm on the coarsest levels). The front door's robust profile sets it.
     """
 
-    tissue_dt: float = 0.02
+    tissue_dt: float = PAPER_TISSUE_DT_S
     substeps: int = 10
     iterations: int = 1
     contact_zone_iterations: int = 3
@@ -102,12 +103,7 @@ class PBDConfig:
     skin_contact: bool = False
 
     def __post_init__(self) -> None:
-        _check_number("tissue_dt", self.tissue_dt, "a time step in seconds in (0, 1] (paper: 0.02)")
-        if not 0.0 < self.tissue_dt <= 1.0:
-            raise ConfigError(
-                f"tissue_dt must be a time step in seconds in (0, 1]; got {self.tissue_dt!r} "
-                "(the paper uses 0.02)"
-            )
+        check_tissue_dt(self.tissue_dt)
         for name, smallest in (
             ("substeps", 1),
             ("iterations", 1),
