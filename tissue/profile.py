@@ -1,5 +1,9 @@
 """The two profiles, ``paper`` and ``robust``: what each decides, in one place.
 
+A profile is a bundle of choices, one per layer, listed in :data:`PROFILES` as
+:class:`ProfileChoices`. The layers below read the choice they act on by name
+(``profile_choices(config.mode).newton``); no module outside this one compares profiles.
+
 - ``paper``: as Tagliabue et al. 2020 -- one linearised backward-Euler solve per step, CG
   capped at 25 iterations; prescribed displacement with the node set chosen at first contact
   (on the published scene, its own set for the lesion); penalty with plain springs; the
@@ -9,17 +13,15 @@
   prescribed displacement with an online, sliding (frictionless) node set on the volume's
   boundary and the skin between its nodes kept out of the probe
   (:class:`tissue.contact.prescribed.PrescribedParams`, ``skin_guard``); the 60-substep XPBD
-  tissue with a volume floor.
+  tissue with a volume floor and contact points on the skin between the boundary nodes.
 
 Either way a PBD tissue's compliance scales are calibrated for the mesh it runs on
 (:func:`tissue.pbd.calibration.calibrated_pbd_config`, cached on disk).
-
-:func:`tissue.spec.resolve_spec` asks each contact strategy for its settings under the
-spec's profile (:meth:`tissue.contact.base.ContactModel.settings_for`); the strategies read
-the profile's choices from here.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 from tissue.choices import Choice
 from tissue.errors import ConfigError
@@ -53,3 +55,71 @@ class Profile(Choice):
     @classmethod
     def noun(cls) -> str:
         return "profile"
+
+
+@dataclass(frozen=True)
+class ProfileChoices:
+    """What a profile decides, each choice read by name where it acts.
+
+    Attributes:
+        newton: solve each step's nonlinear problem to the Newton tolerance, with line
+            search and step subdivision (LM: its Newton-LCP iteration), instead of the
+            paper's one linearised backward-Euler solve (LM: one free motion and one
+            response) (:mod:`tissue.sim.integrator`, :mod:`tissue.contact.lagrange`).
+        linear_solver: the default linear solver: ``cg`` (capped at 25 iterations, as the
+            paper) or ``reuse`` (a kept factorisation preconditioning CG)
+            (:mod:`tissue.sim.solvers`).
+        project_psd: project element tangents to positive semi-definite.
+        inversion_barrier: the volume ratio J below which a barrier keeps tets from
+            inverting; 0 leaves the law as published (:class:`tissue.fem.elasticity.Elasticity`).
+        fine_boundary_contact: FE contact acts on the volume's boundary where it is finer than
+            the collision surface (:func:`tissue.contact.fe_model.model_surface`); otherwise on
+            the collision surface, as the paper.
+        augmented_penalty: penalty's springs are augmented (re-solved) until no point is
+            deeper than their tolerance (:mod:`tissue.contact.penalty`).
+        online_prescribed: prescribed displacement picks its node set online each step,
+            sliding, with the skin between its nodes guarded; otherwise the set chosen at
+            first contact (:mod:`tissue.contact.prescribed`).
+        pbd_preset: the XPBD tissue's settings: ``baseline`` (10 substeps, FleX-like) or
+            ``robust`` (60 substeps, a volume floor, skin contact points)
+            (:meth:`tissue.pbd.PBDConfig.preset`).
+    """
+
+    newton: bool
+    linear_solver: str
+    project_psd: bool
+    inversion_barrier: float
+    fine_boundary_contact: bool
+    augmented_penalty: bool
+    online_prescribed: bool
+    pbd_preset: str
+
+
+#: Every profile's choices (the module docstring says why).
+PROFILES: dict[Profile, ProfileChoices] = {
+    Profile.PAPER: ProfileChoices(
+        newton=False,
+        linear_solver="cg",
+        project_psd=False,
+        inversion_barrier=0.0,
+        fine_boundary_contact=False,
+        augmented_penalty=False,
+        online_prescribed=False,
+        pbd_preset="baseline",
+    ),
+    Profile.ROBUST: ProfileChoices(
+        newton=True,
+        linear_solver="reuse",
+        project_psd=True,
+        inversion_barrier=0.1,
+        fine_boundary_contact=True,
+        augmented_penalty=True,
+        online_prescribed=True,
+        pbd_preset="robust",
+    ),
+}
+
+
+def profile_choices(profile: Profile | str) -> ProfileChoices:
+    """The choices of ``profile`` (a :class:`Profile` or its name)."""
+    return PROFILES[Profile.parse(profile)]

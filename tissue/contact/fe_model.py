@@ -16,7 +16,8 @@ from tissue.errors import ConfigError
 from tissue.fem.material import TissueMaterials
 from tissue.mesh import TetMesh, node_dofs
 from tissue.probe import Probe, ProbeShape
-from tissue.sim.integrator import IncrementalPotential, IntegrationMode
+from tissue.profile import profile_choices
+from tissue.sim.integrator import IncrementalPotential
 from tissue.sim.simulator import SimulationConfig, TissueSimulator
 from tissue.sim.solvers import DirectFactorizer, Factorization
 
@@ -36,11 +37,11 @@ FINE_BOUNDARY_RATIO = 4.0
 
 def model_surface(mesh: TetMesh, config: SimulationConfig) -> SurfacePoints:
     """The points an FE contact model (LM, penalty) acts on for ``mesh`` under ``config``:
-    the collision surface, or in robust mode the volume's boundary where it is at least
-    :data:`FINE_BOUNDARY_RATIO` times finer. Paper mode keeps the paper's collision surface.
+    the collision surface, or where the profile chooses ``fine_boundary_contact`` the volume's
+    boundary where it is at least :data:`FINE_BOUNDARY_RATIO` times finer.
     """
     surface = contact_surface(mesh)
-    if config.mode is not IntegrationMode.ROBUST or mesh.collision_surface is None:
+    if not profile_choices(config.mode).fine_boundary_contact or mesh.collision_surface is None:
         return surface
     boundary = boundary_surface(mesh)
     return boundary if boundary.count >= FINE_BOUNDARY_RATIO * surface.count else surface

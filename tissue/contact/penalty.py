@@ -79,7 +79,8 @@ from tissue.errors import ConfigError
 from tissue.fem.material import TissueMaterials
 from tissue.mesh import TetMesh
 from tissue.probe import Probe
-from tissue.sim.integrator import IntegrationMode, TermEvaluation
+from tissue.profile import profile_choices
+from tissue.sim.integrator import TermEvaluation
 from tissue.sim.simulator import StepResult, TissueSimulator
 from tissue.sim.solvers import RankOneTerms
 from tissue.status import StepStatus
@@ -98,8 +99,8 @@ class PenaltyParams:
             ``DEFAULT_STIFFNESS_RATIO`` x E_tissue x mean surface edge length.
         contact_distance_m: springs act when a point is closer than this to the probe [m]
             (the published scene used 1 mm; 0 makes the probe surface itself the contact).
-        augmented: augmented-Lagrangian updates (see the module docstring); None: in robust
-            mode only (paper mode keeps the paper's plain springs).
+        augmented: augmented-Lagrangian updates (see the module docstring); None: as the
+            profile chooses (robust yes; paper keeps the paper's plain springs).
         penetration_tolerance_m: (augmented) re-solve a step while a point is deeper [m].
         max_augmentations: (augmented) re-solves per step at most.
     """
@@ -263,7 +264,7 @@ class PenaltyContact(FEContactModel):
     ) -> tuple[StepStatus, NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
         augmented = self.params.augmented
         if augmented is None:
-            augmented = self.sim.config.mode is IntegrationMode.ROBUST
+            augmented = profile_choices(self.sim.config.mode).augmented_penalty
         result = self._augmented_step(h) if augmented else self.sim.step((self.term,), h)
         # Forces at the state the step ended in: the springs' final pull on the probe.
         self.term.evaluate(self.sim.positions)

@@ -52,7 +52,7 @@ from tissue.contact.registry import register_contact
 from tissue.contact.wrench_stiffness import ContactConstraints
 from tissue.errors import ConfigError
 from tissue.mesh import TetMesh, boundary_faces
-from tissue.sim.integrator import IntegrationMode
+from tissue.profile import profile_choices
 from tissue.status import StepStatus
 
 # Re-solves of a guarded step at most (see PrescribedParams.skin_guard).
@@ -123,9 +123,7 @@ class PrescribedContact(FEContactModel):
         """Robust: an online, sliding node set with the skin guarded. Paper: the node set
         chosen at first contact, or on the published scene (``spec.scene_lesion``) the
         scene's own set for that lesion."""
-        from tissue.profile import Profile
-
-        if Profile.parse(spec.profile) is Profile.ROBUST:
+        if profile_choices(spec.profile).online_prescribed:
             return PrescribedParams(online=True, sliding=True, skin_guard=True)
         if spec.scene_lesion is not None:
             return PrescribedParams(node_set=spec.published_node_set(mesh))
@@ -144,7 +142,7 @@ class PrescribedContact(FEContactModel):
                 )
         self._guard: PenaltyTerm | None = None
         if self.params.skin_guard:
-            if self.sim.config.mode is not IntegrationMode.ROBUST:
+            if not profile_choices(self.sim.config.mode).newton:
                 raise ConfigError(
                     "skin_guard needs robust mode (its springs are re-solved in Newton's "
                     "step); the paper configuration keeps the paper's node set alone"

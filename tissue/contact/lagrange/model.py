@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 from tissue.contact.lagrange.fallbacks import RobustFallbacks
 from tissue.contact.lagrange.paper import PaperSteps
 from tissue.contact.registry import register_contact
-from tissue.sim.integrator import IntegrationMode
+from tissue.profile import profile_choices
 from tissue.status import StepStatus
 
 
@@ -39,9 +39,9 @@ class LagrangeContact(PaperSteps, RobustFallbacks):
     def _advance(
         self, h: float
     ) -> tuple[StepStatus, NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:
-        if self.sim.config.mode is IntegrationMode.PAPER:
-            outcome = self._paper_step(h)
-        else:
+        if profile_choices(self.sim.config.mode).newton:
             outcome = self._subdivided_robust_step(h, 0)
+        else:
+            outcome = self._paper_step(h)
         self._pose_before = (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
         return outcome
