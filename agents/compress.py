@@ -26,6 +26,7 @@ from tissue.errors import ConfigError, TissueInputError
 from tissue.mesh import TetMesh, boundary_faces
 from tissue.pbd import PBDConfig
 from tissue.probe import Probe, ProbeShape
+from tissue.profile import profile_choices
 from tissue.status import StepStatus, worst
 
 # The probe starts this far before first contact [m].
@@ -351,7 +352,7 @@ def build_model(
     if online and method != "prescribed":
         raise ConfigError(f"--online applies to --method prescribed only; got --method {method}")
     if online is None and sliding:
-        online = mode == "robust"  # the profile's node set: online in robust mode only
+        online = profile_choices(mode).online_prescribed  # the profile's node set
     if sliding and not (online and method == "prescribed"):
         raise ConfigError(
             "--sliding applies to --method prescribed with an online node set (--online; the "

@@ -20,6 +20,7 @@ from tissue.errors import ConfigError
 from tissue.mesh import TetMesh
 from tissue.mesh.paper_scene import spring_nodes_to_volume
 from tissue.probe import ProbeShape, parse_probe_spec
+from tissue.profile import profile_choices
 
 # Synthetic default depths past first contact [m] (the study's: 10, 20, 25, 30 mm).
 DEFAULT_DEPTHS_M = [0.01, 0.02, 0.025, 0.03]
@@ -76,7 +77,9 @@ def run_compress_command(args: argparse.Namespace) -> int:
                 f"{sorted(scene.probe_poses)}"
             )
         mesh = scene.mesh
-        paper_set = online is False or (online is None and args.mode == "paper")
+        paper_set = online is False or (
+            online is None and not profile_choices(args.mode).online_prescribed
+        )
         if args.method == "prescribed" and paper_set:  # the paper's set for this lesion
             given_nodes = spring_nodes_to_volume(mesh, scene.spring_nodes[args.lesion])
     else:

@@ -57,6 +57,7 @@ from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.mesh import TetMesh
 from tissue.pbd import PBDConfig
 from tissue.probe import Probe, ProbeShape, parse_probe_spec, quat_to_matrix
+from tissue.profile import profile_choices
 from tissue.sim.simulator import SimulationConfig
 
 # The energy check allows this much above the work done, relative and absolute [J].
@@ -160,7 +161,7 @@ def build_case_model(
         default = default_stiffness_n_per_m(surface, mesh, materials)
         kwargs["params"] = PenaltyParams(stiffness_n_per_m=default * case.penalty_stiffness_scale)
     elif method == "prescribed":
-        kwargs["params"] = PrescribedParams(online=config == "robust")
+        kwargs["params"] = PrescribedParams(online=profile_choices(config).online_prescribed)
     return make_contact_model(method, mesh, shape, **kwargs)
 
 

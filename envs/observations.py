@@ -22,8 +22,8 @@ from envs.controller import cross3
 from envs.errors import EnvConfigError
 from envs.scene import SceneNames
 
-#: The simulated effects a term may need (issue: "simulate only the effects a scene calls
-#: for"): the breast deforming, its force on the robot, lesions tracked in the image plane,
+#: The simulated effects a term may need (a scene simulates only the effects it calls
+#: for): the breast deforming, its force on the robot, lesions tracked in the image plane,
 #: the ultrasound image.
 EFFECTS = ("deformation", "force_feedback", "lesion_tracking", "image")
 

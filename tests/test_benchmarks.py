@@ -75,7 +75,7 @@ def test_robust_step_targets_are_issue_5s(capsys: pytest.CaptureFixture[str]) ->
     ]
     print_robust_targets(records, "step_ms", "median step")
     lines = capsys.readouterr().out.strip().splitlines()
-    assert lines[0] == "targets (issue 5): a converged robust step"
+    assert lines[0] == "targets: a converged robust step"
     assert lines[1].split()[-1] == "meets" and "4141 tets" in lines[1]
     assert lines[2].split()[-1] == "MISSES" and "pbd" in lines[2]
     assert len(lines) == 3  # no target at 571 tets

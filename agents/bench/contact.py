@@ -28,9 +28,9 @@ Methods: ``penalty``, ``lm``, ``prescribed`` (always with ``online=True``: the n
 follows the probe's footprint, as a user without a pre-computed node set would run it) and
 ``pbd`` (paper: 10 substeps; robust: 60, :meth:`tissue.pbd.PBDConfig.for_mode`).
 
-Targets of issue 3, printed against the measurements: penalty and prescribed in paper mode
+The speed targets, printed against the measurements: penalty and prescribed in paper mode
 <= 5 ms per step up to 4.1k tets and <= 20 ms (real time at 0.02 s) up to 26k tets; LM <= 2 x
-penalty (same mode) at every level up to 26k tets. And issue 5's, for every method's robust
+penalty (same mode) at every level up to 26k tets; for every method's robust
 mode: a median step <= 20 / 100 / 500 ms on the 4,126 / 26,220 / 176,506-tet levels, every
 step ok (``robust_target_step_ms``, ``meets_robust_target``). Times are wall clock on a
 shared machine: read ratios taken in one run, not absolute numbers across runs.
@@ -70,7 +70,7 @@ START_CLEARANCE_M = 0.0001
 RUN_WALL_BUDGET_S = 120.0
 # Steps allowed before contact must have happened (clearance / advance, with margin).
 MAX_APPROACH_STEPS = 20
-# Targets (issue 3) [ms per step] and the tet count up to which the tighter one applies.
+# The paper-mode targets [ms per step] and the tet count up to which the tighter one applies.
 TARGET_FAST_MS = 5.0
 TARGET_FAST_TETS = 4200
 TARGET_REALTIME_MS = 20.0
@@ -197,7 +197,7 @@ def _annotate_targets(records: list[dict[str, Any]]) -> None:
             record["target_step_ms"] = limit
             record["meets_target"] = bool(record["step_ms"] <= limit)
         if record["mode"] == "robust":
-            # Issue 5: every step of the run ended ok (converged), and the median in time.
+            # Every step of the run ended ok (converged), and the median in time.
             converged = (
                 set(record["status_counts"]) == {"ok"} and not record["stopped_by_wall_budget"]
             )
@@ -272,7 +272,7 @@ def markdown_tables(records: list[dict[str, Any]], levels: list[int]) -> list[Ma
 
 def print_tables(records: list[dict[str, Any]], levels: list[int]) -> None:
     """Print step time, force and penetration per method/mode (rows) and level (columns),
-    then the issue's targets against the measurements."""
+    then the speed targets against the measurements."""
     tets = {r["level"]: r["tets"] for r in records}
     header = f"{'method':>10} {'mode':>6} " + " ".join(
         f"{tets.get(level, level):>9}" for level in levels
@@ -294,7 +294,7 @@ def print_tables(records: list[dict[str, Any]], levels: list[int]) -> None:
                 f"{record['depth_beyond_contact_m'] * 1e3:.1f} mm"
             )
 
-    print("\ntargets (issue 3)")
+    print("\ntargets (paper mode)")
     for record in records:
         if "target_step_ms" in record:
             verdict = "meets" if record["meets_target"] else "MISSES"

@@ -14,7 +14,7 @@ first), no rendering, one process. Per record:
   the observation and reward;
 - ``reset_ms``: the median wall time of five resets after the first.
 
-Targets (issue "the coupled environment", robust profile, probe in contact): at least 300
+Targets (robust profile, probe in contact): at least 300
 steps/s for prescribed and penalty and 250 for LM at level 1363, 200 for the three at level
 2539; PBD reported; a reset within 5 ms after the first.
 """

@@ -53,7 +53,7 @@ environment for MKL, and dominated a 1 s press at 4.1k tets: LM 0.62 x and presc
 in robust mode, against 1.31 x and 4.19 x since, in runs on one loaded machine), and the
 process's loading of our compiled kernels: an untimed warm-up press of the same method, mode
 and level (:data:`WARMUP_SIM_S`) precedes each timed one. The timed press still builds its own
-model and pays its own first factorisation. Targets of issue 3: ratio >= 3 in paper mode,
+model and pays its own first factorisation. Targets: ratio >= 3 in paper mode,
 >= 2 in robust mode. Times are wall clock on a shared machine; compare the ratios taken in one
 run.
 """
@@ -480,7 +480,7 @@ def _mm(value: float) -> str:
 
 def markdown_tables(records: list[dict[str, Any]]) -> list[MarkdownTable]:
     """Each of our runs against MuJoCo's headline variant: ms of computation per simulated
-    second, the ratio (MuJoCo / ours, the issue's target beside it) and lesion 1's error."""
+    second, the ratio (MuJoCo / ours, the target beside it) and lesion 1's error."""
     needed = {"paper": 3.0, "robust": 2.0}
     table = MarkdownTable(
         f"ms per simulated s (all steps), MuJoCo {MUJOCO_VARIANTS[0].name} / ours, lesion 1 "
@@ -567,7 +567,7 @@ def print_tables(records: list[dict[str, Any]]) -> None:
                 f"{run['solver_iterations_at_cap']}), warnings {run['warnings']}"
             )
     print(
-        "\ntargets (issue 3): MuJoCo / ours >= 3 in paper mode, >= 2 in robust mode, "
+        "\ntargets: MuJoCo / ours >= 3 in paper mode, >= 2 in robust mode, "
         f"for each of our methods (the headline is {OURS_METHODS[0]})"
     )
     needed = {"paper": 3.0, "robust": 2.0}

@@ -33,13 +33,13 @@ STEP_ADVANCE_M = PAPER_PROBE_SPEED_M_S * PAPER_TISSUE_DT_S
 PRELOAD_DEPTH_M = 0.004
 # Surface nodes this far below the apex, under the face, move with the probe (a contact patch).
 PATCH_DEPTH_M = 0.005
-# Issue 5's targets for a converged robust step [ms], by phantom level (4,126, 26,220 and
+# The targets for a converged robust step [ms], by phantom level (4,126, 26,220 and
 # 176,506 tets), in this benchmark's Newton step and in ``probegym bench contact``.
 ROBUST_STEP_TARGET_MS = {4126: 20.0, 26220: 100.0, 176506: 500.0}
 
 
 def robust_step_target(level: int, step_ms: float, converged: bool) -> dict[str, float | bool]:
-    """Issue 5's target at ``level`` and whether a robust step of ``step_ms`` [ms] meets it
+    """The robust-step target at ``level`` and whether a robust step of ``step_ms`` [ms] meets it
     (only a ``converged`` one can): ``robust_target_step_ms`` and ``meets_robust_target``,
     or nothing at a level without a target."""
     limit = ROBUST_STEP_TARGET_MS.get(level)
@@ -225,11 +225,11 @@ def _table(records: list[dict[str, Any]]) -> MarkdownTable:
 
 
 def print_robust_targets(records: list, key: str, what: str) -> None:
-    """Print issue 5's robust-step target lines for the ``records`` that carry one."""
+    """Print the robust-step target lines for the ``records`` that carry one."""
     marked = [r for r in records if "robust_target_step_ms" in r]
     if not marked:
         return
-    print("\ntargets (issue 5): a converged robust step")
+    print("\ntargets: a converged robust step")
     for record in marked:
         verdict = "meets" if record["meets_robust_target"] else "MISSES"
         label = f"{record['method']:>10} " if "method" in record else ""

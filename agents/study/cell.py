@@ -18,7 +18,7 @@ from agents.study.spec import Cell, StudySpec
 from tissue.contact.stability import StabilityLimits, StabilityMonitor
 from tissue.pbd import PBDConfig
 from tissue.probe import parse_probe_spec
-from tissue.profile import Profile
+from tissue.profile import profile_choices
 
 #: The study's instability detector: every check of :mod:`tissue.contact.stability` but the
 #: landmark jump, which frictionless contact on the sloped phantom also trips physically
@@ -48,7 +48,7 @@ def run_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
     mesh = scene.mesh(cell.level)
     shape = parse_probe_spec("face")
     prescribed = cell.method == "prescribed"
-    online = prescribed and cell.config is Profile.ROBUST
+    online = prescribed and profile_choices(cell.config).online_prescribed
     node_set = scene.prescribed_nodes(mesh, cell.lesion) if prescribed and not online else None
     # The study's own configurations, fixed (its published results were computed with them):
     # robust prescribed online and sticking, PBD with the constants calibrated at 4,126 tets.
