@@ -19,7 +19,7 @@ def _kernels() -> list[Any]:
     """A sample of the kernels a simulation compiles, one per module that has them."""
     from tissue.contact import lagrange, penalty
     from tissue.fem.kernels import anp_patch_pass, element_pass, gather_elements
-    from tissue.pbd import _project_tets
+    from tissue.pbd.sweep import project_tets as _project_tets
     from tissue.sim.solvers import _product
 
     return [

@@ -39,15 +39,14 @@ def _pose(mesh: TetMesh, depth_m: float) -> tuple[np.ndarray, np.ndarray]:
     return probe.position_world, probe.quat_wxyz
 
 
-def _press(model: PBDContact, depth_m: float, hold_steps: int = 0):
-    """Ramp the probe from the current depth to ``depth_m`` at 0.2 mm per step, then hold."""
-    start = getattr(model, "_test_depth", 0.0)
-    step_count = max(1, int(np.ceil(abs(depth_m - start) / SPEED_M_PER_STEP)))
+def _press(model: PBDContact, depth_m: float, hold_steps: int = 0, start_m: float = 0.0):
+    """Ramp the probe from ``start_m`` (the depth it is at) to ``depth_m`` at 0.2 mm per
+    step, then hold."""
+    step_count = max(1, int(np.ceil(abs(depth_m - start_m) / SPEED_M_PER_STEP)))
     results = []
     for k in range(1, step_count + hold_steps + 1):
-        depth = start + (depth_m - start) * min(1.0, k / step_count)
+        depth = start_m + (depth_m - start_m) * min(1.0, k / step_count)
         results.append(model.step(*_pose(model.mesh, depth)))
-    model._test_depth = depth_m  # type: ignore[attr-defined]
     return results
 
 
@@ -85,8 +84,10 @@ def test_rest_stays_at_rest(block: TetMesh) -> None:
 def test_pressing_a_block(block: TetMesh) -> None:
     model = PBDContact(block, PROBE_SHAPE)
     normal_forces = []
+    previous = 0.0
     for depth in (0.001, 0.002, 0.003, 0.004):
-        results = _press(model, depth, hold_steps=10)
+        results = _press(model, depth, hold_steps=10, start_m=previous)
+        previous = depth
         for result in results:
             assert result.status is StepStatus.OK
             assert np.all(np.isfinite(result.force_world))
@@ -181,8 +182,8 @@ def test_divergence_is_reported_and_the_state_kept(
     _press(model, 0.001)
     before = model.node_positions.copy()
     time_before = model.time_s
-    monkeypatch.setattr(pbd, "_project_tets", _tets_to_nan)
-    monkeypatch.setattr(pbd, "_project_tets_two_domains", _tets_to_nan)
+    monkeypatch.setattr(pbd.sweep, "project_tets", _tets_to_nan)
+    monkeypatch.setattr(pbd.sweep, "project_tets_two_domains", _tets_to_nan)
     result = model.step(*_pose(block, 0.0012))
     assert result.status is StepStatus.DIVERGED
     np.testing.assert_array_equal(model.node_positions, before)
@@ -192,8 +193,8 @@ def test_divergence_is_reported_and_the_state_kept(
 
 def test_inversion_is_reported(block: TetMesh, monkeypatch: pytest.MonkeyPatch) -> None:
     model = PBDContact(block, PROBE_SHAPE, config=PBDConfig(substeps=1))
-    monkeypatch.setattr(pbd, "_project_tets", _tets_invert)
-    monkeypatch.setattr(pbd, "_project_tets_two_domains", _tets_invert)
+    monkeypatch.setattr(pbd.sweep, "project_tets", _tets_invert)
+    monkeypatch.setattr(pbd.sweep, "project_tets_two_domains", _tets_invert)
     result = model.step(*_pose(block, -0.002))
     assert result.status is StepStatus.INVERTED
     assert result.diagnostics["min_volume_ratio"] < 0.0
@@ -227,7 +228,7 @@ def test_volume_floor_lifts_a_crushed_tet(start: float) -> None:
     centroid = x.mean(axis=0)
     support = np.zeros((4, 3))
     for _ in range(3):  # one projection is first order; repeats end at or just above it
-        pbd._enforce_volume_floor(x, inv_mass, tets, dm_inv, inv_det, 0.1, support)
+        pbd.volume.enforce_volume_floor(x, inv_mass, tets, dm_inv, inv_det, 0.1, support)
     assert 0.1 <= _volume_ratio(x) < 0.11
     np.testing.assert_allclose(x.mean(axis=0), centroid, atol=1e-15)
     np.testing.assert_array_equal(support, 0.0)
@@ -248,7 +249,7 @@ def test_volume_floor_lifts_two_crushed_neighbours_together() -> None:
     support = np.zeros((5, 3))
     inv_mass = np.full(5, 1e3)
     dm_inv = np.linalg.inv(rest_edges)
-    assert pbd._enforce_volume_floor(x, inv_mass, tets, dm_inv, inv_det, 0.1, support) >= 2
+    assert pbd.volume.enforce_volume_floor(x, inv_mass, tets, dm_inv, inv_det, 0.1, support) >= 2
     ratios = [np.linalg.det((x[t[1:]] - x[t[0]]).T) * inv_det[i] for i, t in enumerate(tets)]
     assert all(0.1 <= ratio < 0.11 for ratio in ratios), ratios
     np.testing.assert_allclose(x.mean(axis=0), centroid, atol=1e-15)
@@ -267,8 +268,8 @@ def test_volume_floor_lifts_more_tets_than_one_joint_block() -> None:
     support = np.zeros_like(x)
     inv_mass = np.tile(inv_mass1, count)
     dm_inv, inv_det = np.repeat(dm_inv1, count, axis=0), np.repeat(inv_det1, count)
-    assert count - 1 > pbd._FLOOR_BLOCK
-    pbd._enforce_volume_floor(x, inv_mass, tets, dm_inv, inv_det, 0.1, support)
+    assert count - 1 > pbd.volume.FLOOR_BLOCK
+    pbd.volume.enforce_volume_floor(x, inv_mass, tets, dm_inv, inv_det, 0.1, support)
     ratios = [_volume_ratio(x[4 * k : 4 * k + 4]) for k in range(count - 1)]
     assert min(ratios) >= 0.1 and max(ratios) < 0.11, (min(ratios), max(ratios))
     np.testing.assert_array_equal(x[-4:], before)
@@ -278,11 +279,11 @@ def test_volume_floor_leaves_other_tets_and_counts_fixed_node_support() -> None:
     x, inv_mass, tets, dm_inv, inv_det = _one_tet(0.5)
     before = x.copy()
     support = np.zeros((4, 3))
-    assert pbd._enforce_volume_floor(x, inv_mass, tets, dm_inv, inv_det, 0.1, support) == 0
+    assert pbd.volume.enforce_volume_floor(x, inv_mass, tets, dm_inv, inv_det, 0.1, support) == 0
     np.testing.assert_array_equal(x, before)
     x, inv_mass, tets, dm_inv, inv_det = _one_tet(0.05, fixed_first=True)
     fixed = x[0].copy()
-    assert pbd._enforce_volume_floor(x, inv_mass, tets, dm_inv, inv_det, 0.1, support) == 1
+    assert pbd.volume.enforce_volume_floor(x, inv_mass, tets, dm_inv, inv_det, 0.1, support) == 1
     np.testing.assert_array_equal(x[0], fixed)
     # The fixed node's share of the correction is the base's reaction, not lost.
     assert np.linalg.norm(support[0]) > 0.0
@@ -385,7 +386,7 @@ def test_substep_kernels_match_the_array_expressions_they_replace() -> None:
         (np.full(3, -1.0), np.full(3, 1.0)),  # a box holding the ball: the ball alone
         (np.array([-0.02, -0.01, -0.005]), np.array([0.02, 0.0, 0.005])),  # a slab
     ):
-        count = pbd._points_near(
+        count = pbd.contact.points_near(
             x, point_nodes, point_weights, centre, reach, rotation, low, high, near, positions
         )
         in_box = np.all((local >= low) & (local <= high), axis=1)
@@ -398,20 +399,22 @@ def test_substep_kernels_match_the_array_expressions_they_replace() -> None:
     v = rng.normal(size=(200, 3))
     damping, h = 0.99, 1.0 / 3000.0
     x_kernel, v_kernel, previous = x.copy(), v.copy(), np.empty_like(x)
-    pbd._predict(x_kernel, v_kernel, previous, damping, h)
+    pbd.substep.predict(x_kernel, v_kernel, previous, damping, h)
     v_numpy = v * damping
     np.testing.assert_array_equal(v_kernel, v_numpy)
     np.testing.assert_array_equal(previous, x)
     np.testing.assert_array_equal(x_kernel, x + h * v_numpy)
     moved = x_kernel + rng.normal(scale=1e-6, size=x.shape)
-    pbd._update_velocity(moved, previous, v_kernel, h)
+    pbd.substep.update_velocity(moved, previous, v_kernel, h)
     np.testing.assert_array_equal(v_kernel, (moved - previous) / h)
 
     # A substep's start and end: the same bits as the numpy they replace.
     lam_dev, lam_hyd = rng.normal(size=50), rng.normal(size=50)
     support_step = rng.normal(size=x.shape)
     x_start, v_start, previous_start = x.copy(), v.copy(), np.empty_like(x)
-    pbd._start_substep(x_start, v_start, previous_start, damping, h, lam_dev, lam_hyd, support_step)
+    pbd.substep.start_substep(
+        x_start, v_start, previous_start, damping, h, lam_dev, lam_hyd, support_step
+    )
     np.testing.assert_array_equal(x_start, x + h * v_numpy)
     assert not lam_dev.any() and not lam_hyd.any() and not support_step.any()
     support_step = rng.normal(size=x.shape)
@@ -424,7 +427,7 @@ def test_substep_kernels_match_the_array_expressions_they_replace() -> None:
     impulse = rng.normal(size=(20, 3))
     impulse_numpy = impulse.copy()
     np.add.at(impulse_numpy, points, normals * (lam / h)[:, None])
-    pressing = pbd._end_substep(
+    pressing = pbd.substep.end_substep(
         moved, previous, v_kernel, h, support_step, support, points, normals, lam, impulse
     )
     assert pressing == 3
@@ -491,18 +494,17 @@ def test_tet_sweep_is_the_constraint_projection_written_with_numpy() -> None:
     matrix form, over every tet of a deformed phantom with its fixed base and multipliers
     already accumulated (so that every term of the update acts)."""
     mesh = breast_phantom(1363)
-    model = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_mode("robust"))
+    a = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_mode("robust")).arrays
     rng = np.random.default_rng(11)
-    x0 = mesh.nodes[model._node_order] + rng.normal(scale=5e-4, size=(mesh.node_count, 3))
+    x0 = mesh.nodes[a.node_order] + rng.normal(scale=5e-4, size=(mesh.node_count, 3))
     lam0 = rng.normal(scale=1e-9, size=(2, mesh.tet_count))
-    assert np.any(model._inv_mass == 0.0)  # the fixed base's share goes to support
+    assert np.any(a.inv_mass == 0.0)  # the fixed base's share goes to support
     results = []
-    for sweep in (pbd._project_tets, _reference_sweep):
+    for sweep in (pbd.sweep.project_tets, _reference_sweep):
         x, support = x0.copy(), np.zeros_like(x0)
         lam_dev, lam_hyd = lam0[0].copy(), lam0[1].copy()
-        arrays = (model._inv_mass, model._tets, model._dm_inv, model._alpha_dev,
-                  model._alpha_hyd, model._gamma)  # fmt: skip
-        sweep(x, *arrays, lam_dev, lam_hyd, support, model._all_tets)
+        arrays = (a.inv_mass, a.tets, a.dm_inv, a.alpha_dev, a.alpha_hyd, a.gamma)
+        sweep(x, *arrays, lam_dev, lam_hyd, support, a.all_tets)
         results.append((x, lam_dev, lam_hyd, support))
     compiled, reference = results
     assert np.abs(compiled[0] - x0).max() > 1e-5  # the sweep moved the nodes
@@ -512,7 +514,8 @@ def test_tet_sweep_is_the_constraint_projection_written_with_numpy() -> None:
 
 
 # Builds a robust PBD model of the block in a fresh interpreter, then presses it: how many
-# specialisations each compiled kernel of tissue.pbd holds after building and after stepping.
+# specialisations each compiled kernel of tissue.pbd's modules holds after building and after
+# stepping.
 _KERNEL_SIGNATURES_SCRIPT = """
 import json
 import numpy as np
@@ -521,8 +524,9 @@ from tissue.mesh.block import block_mesh
 from tissue.probe import BoxProbe, Probe
 
 def signatures():
-    return {name: len(kernel.signatures) for name, kernel in vars(pbd).items()
-            if hasattr(kernel, "signatures")}
+    return {name: len(kernel.signatures)
+            for module in (pbd.sweep, pbd.contact, pbd.volume, pbd.substep)
+            for name, kernel in vars(module).items() if hasattr(kernel, "signatures")}
 
 mesh = block_mesh((0.04, 0.04, 0.02), (8, 8, 4))
 shape = BoxProbe((0.016, 0.01, 0.016))
@@ -539,7 +543,7 @@ print(json.dumps({"built": built, "stepped": signatures(),
 
 def test_building_the_model_loads_every_kernel_a_step_calls() -> None:
     """The model's construction calls each compiled kernel of a step with the step's own
-    argument types (``PBDContact._load_kernels``): in a fresh interpreter a step in contact
+    argument types (when it is built): in a fresh interpreter a step in contact
     then compiles or loads no further specialisation."""
     run = subprocess.run(
         [sys.executable, "-c", _KERNEL_SIGNATURES_SCRIPT], capture_output=True, text=True
@@ -549,8 +553,8 @@ def test_building_the_model_loads_every_kernel_a_step_calls() -> None:
     assert counts["contacts"] > 0  # the contact kernels ran with contacts
     assert counts["stepped"] == counts["built"]
     step_kernels = {
-        "_start_substep", "_points_near", "_project_tets", "_contact_zone_sweeps",
-        "_enforce_volume_floor", "_end_substep", "_min_volume_ratio",
+        "start_substep", "points_near", "project_tets", "contact_zone_sweeps",
+        "enforce_volume_floor", "end_substep", "min_volume_ratio",
     }  # fmt: skip
     assert all(counts["built"][name] == 1 for name in step_kernels)
 
@@ -559,21 +563,21 @@ def test_two_domain_sweep_is_the_serial_sweep_in_its_order() -> None:
     """The two threads' sweep gives the one-thread sweep's bits (on a machine with one
     core the check still runs, both sides on one thread)."""
     mesh = breast_phantom(1363)
-    model = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_mode("robust"))
+    a = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_mode("robust")).arrays
     rng = np.random.default_rng(5)
-    x0 = mesh.nodes[model._node_order] + rng.normal(scale=2e-4, size=(mesh.node_count, 3))
+    x0 = mesh.nodes[a.node_order] + rng.normal(scale=2e-4, size=(mesh.node_count, 3))
     results = []
     for two_threads in (False, True):
         x = x0.copy()
         support = np.zeros_like(x)
         lam_dev, lam_hyd = np.zeros(mesh.tet_count), np.zeros(mesh.tet_count)
-        args = (x, model._inv_mass, model._tets, model._dm_inv, model._alpha_dev,
-                model._alpha_hyd, model._gamma, lam_dev, lam_hyd, support)  # fmt: skip
+        args = (x, a.inv_mass, a.tets, a.dm_inv, a.alpha_dev, a.alpha_hyd, a.gamma,
+                lam_dev, lam_hyd, support)  # fmt: skip
         for _ in range(3):
             if two_threads:
-                pbd._project_tets_two_domains(*args, model._all_tets, model._sweep_bounds)
+                pbd.sweep.project_tets_two_domains(*args, a.all_tets, a.sweep_bounds)
             else:
-                pbd._project_tets(*args, model._all_tets)
+                pbd.sweep.project_tets(*args, a.all_tets)
         results.append((x, lam_dev, lam_hyd, support))
     assert not np.array_equal(results[0][0], x0)
     for serial, parallel in zip(*results, strict=True):
@@ -588,15 +592,10 @@ def test_contact_zone_sweeps_are_the_calls_they_fuse() -> None:
     top = mesh.nodes[:, 2].max()
     centre = 0.5 * (mesh.nodes.min(axis=0) + mesh.nodes.max(axis=0))
     probe = Probe.looking_along(PROBE_SHAPE, (centre[0], centre[1], top - 0.002), (0, 0, -1))
-    x0 = mesh.nodes[model._node_order]
-    shape = PROBE_SHAPE
-    bounds = shape.local_bounds_m()
-    margin = model.config.contact_margin_m
-    broad_phase = (shape.bounding_radius_m + margin, bounds[0] - margin, bounds[1] + margin)
-    scratch = (np.empty(model._point_nodes.shape[0], dtype=np.int64),
-               np.empty((model._point_nodes.shape[0], 3)))  # fmt: skip
-    points, normals, anchors = model._detect(
-        x0, probe.position_world, probe.rotation_world(), shape, broad_phase, *scratch
+    a = model.arrays
+    x0 = mesh.nodes[a.node_order]
+    points, normals, anchors = model.detect_contacts(
+        x0, probe.position_world, probe.rotation_world()
     )
     assert points.size > 10  # the probe is 2 mm into the surface
     results = []
@@ -605,23 +604,22 @@ def test_contact_zone_sweeps_are_the_calls_they_fuse() -> None:
         support = np.zeros_like(x)
         lam_dev, lam_hyd = np.zeros(mesh.tet_count), np.zeros(mesh.tet_count)
         lam = np.zeros(points.size)
-        tissue = (x, model._inv_mass, model._tets, model._dm_inv, model._alpha_dev,
-                  model._alpha_hyd, model._gamma, lam_dev, lam_hyd, support)  # fmt: skip
-        contact = (model._step_point_nodes, model._point_weights, points, normals, anchors,
-                   model._contact_alpha, lam)  # fmt: skip
+        tissue = (x, a.inv_mass, a.tets, a.dm_inv, a.alpha_dev, a.alpha_hyd, a.gamma,
+                  lam_dev, lam_hyd, support)  # fmt: skip
+        contact = (a.point_nodes, a.point_weights, points, normals, anchors, a.contact_alpha,
+                   lam)  # fmt: skip
         if fused:
-            pbd._contact_zone_sweeps(
-                *tissue, *contact, model._node_tet_start, model._node_tets, model._all_tets, 3
+            pbd.contact.contact_zone_sweeps(
+                *tissue, *contact, a.node_tet_start, a.node_tets, a.all_tets, 3
             )
         else:
-            pbd._project_contacts(x, model._inv_mass, *contact)
-            zone = pbd._contact_zone(
-                model._step_point_nodes, model._point_weights, points, model._node_tet_start,
-                model._node_tets, model._all_tets,
-            )  # fmt: skip
+            pbd.contact.project_contacts(x, a.inv_mass, *contact)
+            zone = pbd.contact.contact_zone(
+                a.point_nodes, a.point_weights, points, a.node_tet_start, a.node_tets, a.all_tets
+            )
             for _ in range(3):
-                pbd._project_tets(*tissue, zone)
-                pbd._project_contacts(x, model._inv_mass, *contact)
+                pbd.sweep.project_tets(*tissue, zone)
+                pbd.contact.project_contacts(x, a.inv_mass, *contact)
         results.append((x, lam_dev, lam_hyd, support, lam))
     assert not np.array_equal(results[0][0], x0) and np.any(results[0][4] > 0.0)
     for explicit, fused_result in zip(*results, strict=True):
@@ -630,16 +628,16 @@ def test_contact_zone_sweeps_are_the_calls_they_fuse() -> None:
 
 def test_parallel_floor_screen_counts_the_tets_below_the_floor() -> None:
     mesh = breast_phantom(1363)
-    model = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_mode("robust"))
+    a = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_mode("robust")).arrays
     rng = np.random.default_rng(7)
-    x = mesh.nodes[model._node_order] + rng.normal(scale=2e-3, size=(mesh.node_count, 3))
-    corners = x[model._tets]
+    x = mesh.nodes[a.node_order] + rng.normal(scale=2e-3, size=(mesh.node_count, 3))
+    corners = x[a.tets]
     edges = np.stack([corners[:, k] - corners[:, 0] for k in (1, 2, 3)], axis=2)
-    ratios = np.linalg.det(edges) * model._inv_det_dm
+    ratios = np.linalg.det(edges) * a.inv_det_dm
     for floor in (0.1, 0.5, 0.9):
         expected = int(np.count_nonzero(ratios < floor))
         assert 0 < expected < mesh.tet_count
-        assert pbd._count_below_volume_floor(x, model._tets, model._inv_det_dm, floor) == expected
+        assert pbd.volume.count_below_volume_floor(x, a.tets, a.inv_det_dm, floor) == expected
 
 
 def test_two_domain_order_keeps_the_public_state_in_mesh_numbering() -> None:

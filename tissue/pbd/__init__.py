@@ -83,7 +83,15 @@ thickness per substep or points tunnel; no stresses. See :class:`PBDContact`.
 Modules: :mod:`~tissue.pbd.config` (settings), :mod:`~tissue.pbd.sweep` (the elastic sweep),
 :mod:`~tissue.pbd.contact` (contact points and constraints), :mod:`~tissue.pbd.volume`
 (volume floor and inversion check), :mod:`~tissue.pbd.substep` (a substep's start and end),
-:mod:`~tissue.pbd.model` (:class:`PBDContact`).
+:mod:`~tissue.pbd.model` (:class:`PBDContact` and its :class:`SweepArrays`).
+
+Kernels: the compiled kernels a step calls are public names of those modules (the package's
+kernel API, each tested against a reference in numpy), called with a model's
+:attr:`PBDContact.arrays`, e.g. ``sweep.project_tets``, ``contact.project_contacts``,
+``volume.enforce_volume_floor``, ``substep.start_substep``. A step looks
+``project_tets`` and ``project_tets_two_domains`` up on :mod:`tissue.pbd.sweep` each time it
+runs, so replacing them there (``monkeypatch.setattr(tissue.pbd.sweep, "project_tets", f)``)
+reaches a model already built.
 """
 
 from tissue.pbd.config import (
@@ -99,37 +107,9 @@ from tissue.pbd.config import (
     ROBUST_VOLUME_FLOOR,
     PBDConfig,
 )
-from tissue.pbd.config import _check_number as _check_number
-from tissue.pbd.contact import _contact_points as _contact_points
-from tissue.pbd.contact import _contact_zone as _contact_zone
-from tissue.pbd.contact import _contact_zone_sweeps as _contact_zone_sweeps
-from tissue.pbd.contact import _pad_embedding as _pad_embedding
-from tissue.pbd.contact import _pad_weights as _pad_weights
-from tissue.pbd.contact import _points_near as _points_near
-from tissue.pbd.contact import _project_contacts as _project_contacts
-from tissue.pbd.model import PBDContact
-from tissue.pbd.substep import _end_substep as _end_substep
-from tissue.pbd.substep import _predict as _predict
-from tissue.pbd.substep import _start_substep as _start_substep
-from tissue.pbd.substep import _update_velocity as _update_velocity
-from tissue.pbd.sweep import _MIN_DEVIATORIC_NORM as _MIN_DEVIATORIC_NORM
-from tissue.pbd.sweep import _SINGULAR_FRACTION as _SINGULAR_FRACTION
-from tissue.pbd.sweep import _SWEEP_FASTMATH as _SWEEP_FASTMATH
-from tissue.pbd.sweep import _project_tets as _project_tets
-from tissue.pbd.sweep import _project_tets_two_domains as _project_tets_two_domains
+from tissue.pbd.model import PBDContact, SweepArrays
 from tissue.pbd.sweep import two_domain_order
-from tissue.pbd.volume import _FLOOR_BLOCK as _FLOOR_BLOCK
-from tissue.pbd.volume import _FLOOR_MARGIN as _FLOOR_MARGIN
-from tissue.pbd.volume import _FLOOR_ROUNDS as _FLOOR_ROUNDS
 from tissue.pbd.volume import PARALLEL_SCREEN_TETS
-from tissue.pbd.volume import _apply as _apply
-from tissue.pbd.volume import _count_below_volume_floor as _count_below_volume_floor
-from tissue.pbd.volume import _deformation as _deformation
-from tissue.pbd.volume import _edge_determinant as _edge_determinant
-from tissue.pbd.volume import _enforce_volume_floor as _enforce_volume_floor
-from tissue.pbd.volume import _lift_together as _lift_together
-from tissue.pbd.volume import _min_volume_ratio as _min_volume_ratio
-from tissue.pbd.volume import _node_gradients as _node_gradients
 
 __all__ = [
     "CALIBRATED_DEVIATORIC_COMPLIANCE_SCALE",
@@ -145,5 +125,6 @@ __all__ = [
     "ROBUST_VOLUME_FLOOR",
     "PBDConfig",
     "PBDContact",
+    "SweepArrays",
     "two_domain_order",
 ]

@@ -2,9 +2,9 @@
 
 :func:`_contact_points` chooses the points contact acts on (the free boundary nodes, points
 embedded in the boundary faces between them, collision-surface vertices);
-:func:`_points_near` is a substep's broad phase; :func:`_project_contacts` projects the
+:func:`points_near` is a substep's broad phase; :func:`project_contacts` projects the
 frictionless inequality constraints on the probe's tangent planes; and
-:func:`_contact_zone_sweeps` runs a substep's contacts and the extra sweeps of the tets around
+:func:`contact_zone_sweeps` runs a substep's contacts and the extra sweeps of the tets around
 them.
 """
 
@@ -17,11 +17,11 @@ from scipy.spatial import cKDTree
 
 from tissue.contact.base import SurfacePoints
 from tissue.mesh import TetMesh, boundary_faces, triangle_grid
-from tissue.pbd.sweep import _project_tets
+from tissue.pbd.sweep import project_tets
 
 
 @nb.njit(cache=True)
-def _project_contacts(
+def project_contacts(
     x: NDArray[np.float64],
     inv_mass: NDArray[np.float64],
     point_nodes: NDArray[np.int64],
@@ -74,7 +74,7 @@ def _project_contacts(
 
 
 @nb.njit(cache=True)
-def _contact_zone_sweeps(
+def contact_zone_sweeps(
     x: NDArray[np.float64],
     inv_mass: NDArray[np.float64],
     tets: NDArray[np.int64],
@@ -98,28 +98,28 @@ def _contact_zone_sweeps(
     zone_iterations: int,
 ) -> None:
     """A substep's contacts after its last full sweep, then ``zone_iterations`` sweeps of the
-    contact zone (:func:`_contact_zone`, in ``order``) each followed by the contacts again.
+    contact zone (:func:`contact_zone`, in ``order``) each followed by the contacts again.
 
     One compiled call (each call checks its arguments' types, a few microseconds). The
-    arguments are :func:`~tissue.pbd.sweep._project_tets`' (``x`` .. ``support``), then
-    :func:`_project_contacts`' after its ``x`` and ``inv_mass`` (``point_nodes`` .. ``lam``),
-    then :func:`_contact_zone`'s.
+    arguments are :func:`~tissue.pbd.sweep.project_tets`' (``x`` .. ``support``), then
+    :func:`project_contacts`' after its ``x`` and ``inv_mass`` (``point_nodes`` .. ``lam``),
+    then :func:`contact_zone`'s.
     """
-    _project_contacts(x, inv_mass, point_nodes, point_weights, points, normals, anchors, alpha, lam)
+    project_contacts(x, inv_mass, point_nodes, point_weights, points, normals, anchors, alpha, lam)
     if zone_iterations == 0:
         return
-    zone = _contact_zone(point_nodes, point_weights, points, node_tet_start, node_tets, order)
+    zone = contact_zone(point_nodes, point_weights, points, node_tet_start, node_tets, order)
     for _ in range(zone_iterations):
-        _project_tets(
+        project_tets(
             x, inv_mass, tets, dm_inv, alpha_dev, alpha_hyd, gamma, lam_dev, lam_hyd, support, zone
         )
-        _project_contacts(
+        project_contacts(
             x, inv_mass, point_nodes, point_weights, points, normals, anchors, alpha, lam
         )
 
 
 @nb.njit(cache=True)
-def _contact_zone(
+def contact_zone(
     point_nodes: NDArray[np.int64],
     point_weights: NDArray[np.float64],
     points: NDArray[np.int64],
@@ -127,7 +127,19 @@ def _contact_zone(
     node_tets: NDArray[np.int64],
     order: NDArray[np.int64],
 ) -> NDArray[np.int64]:
-    """The tets incident to a node that carries a contact point (weight != 0), in ``order``."""
+    """The tets incident to a node that carries a contact point (weight != 0), in ``order``.
+
+    Args:
+        point_nodes, point_weights: the contact surface's embedding, (point_count, 4).
+        points: surface point index of each active contact, (contact_count,).
+        node_tet_start, node_tets: node -> incident tets in CSR form: node n's tets are
+            ``node_tets[node_tet_start[n]:node_tet_start[n + 1]]``, (node_count + 1,) and
+            (4 tet_count,).
+        order: the sweep order of the tets, (tet_count,).
+
+    Returns:
+        the zone's tets (zone_count,), int64, in ``order``.
+    """
     marked = np.zeros(order.shape[0], dtype=np.bool_)
     count = 0
     for k in range(points.shape[0]):
@@ -151,7 +163,7 @@ def _contact_zone(
 
 
 @nb.njit(cache=True)
-def _points_near(
+def points_near(
     x: NDArray[np.float64],
     point_nodes: NDArray[np.int64],
     point_weights: NDArray[np.float64],
@@ -163,7 +175,9 @@ def _points_near(
     near: NDArray[np.int64],
     positions: NDArray[np.float64],
 ) -> int:
-    """The contact points within ``reach`` [m] of ``centre`` [m] (3,) and, in the frame of
+    """The contact points (``point_nodes`` and ``point_weights``, the embedding (point_count,
+    4) each, of node positions ``x`` [m] (node_count, 3)) within ``reach`` [m] of ``centre``
+    [m] (3,) and, in the frame of
     ``rotation`` (3, 3) about ``centre`` (local = (p - centre) R), inside the box from
     ``low`` to ``high`` [m] (3,) each: writes their indices to ``near`` and their positions
     [m] to ``positions`` (both sized for every point) and returns how many.

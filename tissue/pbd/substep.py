@@ -1,7 +1,7 @@
 """A substep's start and end, each one compiled call: prediction, velocity, force sums.
 
-:func:`_start_substep` damps and predicts (x <- x + h v) and zeroes the substep's multipliers;
-:func:`_end_substep` updates the velocities from the positions and adds the substep's support
+:func:`start_substep` damps and predicts (x <- x + h v) and zeroes the substep's multipliers;
+:func:`end_substep` updates the velocities from the positions and adds the substep's support
 and contact impulses to the step's sums.
 """
 
@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 
 @nb.njit(cache=True)
-def _predict(
+def predict(
     x: NDArray[np.float64],
     v: NDArray[np.float64],
     x_previous: NDArray[np.float64],
@@ -31,7 +31,7 @@ def _predict(
 
 
 @nb.njit(cache=True)
-def _update_velocity(
+def update_velocity(
     x: NDArray[np.float64], x_previous: NDArray[np.float64], v: NDArray[np.float64], h: float
 ) -> None:
     """v <- (x - x_previous) / h in place [m/s], (node_count, 3)."""
@@ -41,7 +41,7 @@ def _update_velocity(
 
 
 @nb.njit(cache=True)
-def _start_substep(
+def start_substep(
     x: NDArray[np.float64],
     v: NDArray[np.float64],
     x_previous: NDArray[np.float64],
@@ -51,16 +51,17 @@ def _start_substep(
     lam_hyd: NDArray[np.float64],
     support_step: NDArray[np.float64],
 ) -> None:
-    """A substep's start in one compiled call: :func:`_predict`, and the substep's tet
-    multipliers (tet_count,) and fixed-node support (node_count, 3) set to zero."""
-    _predict(x, v, x_previous, damping, h)
+    """A substep's start in one compiled call: :func:`predict` (arguments ``x`` .. ``h`` as
+    there), and the substep's tet multipliers ``lam_dev``, ``lam_hyd`` (tet_count,) and
+    fixed-node support ``support_step`` (node_count, 3) set to zero."""
+    predict(x, v, x_previous, damping, h)
     lam_dev[:] = 0.0
     lam_hyd[:] = 0.0
     support_step[:] = 0.0
 
 
 @nb.njit(cache=True)
-def _end_substep(
+def end_substep(
     x: NDArray[np.float64],
     x_previous: NDArray[np.float64],
     v: NDArray[np.float64],
@@ -73,13 +74,13 @@ def _end_substep(
     impulse: NDArray[np.float64],
 ) -> int:
     """A substep's end in one compiled call (after its sweeps and volume floor): the
-    velocity update (:func:`_update_velocity`), the step's support sum ``support`` +=
+    velocity update (:func:`update_velocity`), the step's support sum ``support`` +=
     ``support_step`` / h [N s] (node_count, 3), and each contact's impulse n lambda / h [N s]
     added to its point's row of ``impulse`` (point_count, 3), ``points``, ``normals`` and
-    ``lam`` as :func:`~tissue.pbd.contact._project_contacts`'. Returns how many contacts
+    ``lam`` as :func:`~tissue.pbd.contact.project_contacts`'. Returns how many contacts
     carry a force. The arithmetic is numpy's (``support += support_step / h``,
     ``np.add.at``), to the bit."""
-    _update_velocity(x, x_previous, v, h)
+    update_velocity(x, x_previous, v, h)
     for i in range(support.shape[0]):
         for a in range(3):
             support[i, a] += support_step[i, a] / h

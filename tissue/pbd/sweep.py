@@ -1,7 +1,7 @@
 """The elastic sweep: one Gauss-Seidel pass of the neo-Hookean constraint pair over the tets.
 
-:func:`_project_tets` projects each tet's deviatoric and hydrostatic constraints together (the
-coupled 2 x 2 solve of Macklin & Mueller 2021); :func:`_project_tets_two_domains` runs the same
+:func:`project_tets` projects each tet's deviatoric and hydrostatic constraints together (the
+coupled 2 x 2 solve of Macklin & Mueller 2021); :func:`project_tets_two_domains` runs the same
 sweep as two node-disjoint domains on two threads, then their separator, in the order
 :func:`two_domain_order` gives, the same bits as the one-thread sweep in that order.
 """
@@ -28,7 +28,7 @@ _SWEEP_FASTMATH = {"contract", "reassoc", "nsz"}
 
 
 @nb.njit(cache=True, fastmath=_SWEEP_FASTMATH)
-def _project_tets(
+def project_tets(
     x: NDArray[np.float64],
     inv_mass: NDArray[np.float64],
     tets: NDArray[np.int64],
@@ -167,7 +167,7 @@ def _project_tets(
 
 
 @nb.njit(parallel=True, cache=True, fastmath=False)
-def _project_tets_two_domains(
+def project_tets_two_domains(
     x: NDArray[np.float64],
     inv_mass: NDArray[np.float64],
     tets: NDArray[np.int64],
@@ -186,15 +186,16 @@ def _project_tets_two_domains(
     ``order[bounds[0]:bounds[1]]`` and ``order[bounds[1]:bounds[2]]`` share no node (see
     :func:`two_domain_order`), so projecting them at the same time is the same, bit for bit,
     as projecting one after the other; the separator ``order[bounds[2]:bounds[3]]`` follows
-    on one thread. The result is that of :func:`_project_tets` over ``order`` whatever the
-    thread count. Arguments as :func:`_project_tets`; ``bounds`` is (4,).
+    on one thread. The result is that of :func:`project_tets` over ``order`` whatever the
+    thread count. Arguments ``x`` .. ``support`` as :func:`project_tets`; ``order``
+    (tet_count,) and ``bounds`` (4,) as :func:`two_domain_order` returns them.
     """
     for part in nb.prange(2):
-        _project_tets(
+        project_tets(
             x, inv_mass, tets, dm_inv, alpha_dev, alpha_hyd, gamma, lam_dev, lam_hyd,
             support, order[bounds[part] : bounds[part + 1]],
         )  # fmt: skip
-    _project_tets(
+    project_tets(
         x, inv_mass, tets, dm_inv, alpha_dev, alpha_hyd, gamma, lam_dev, lam_hyd, support,
         order[bounds[2] : bounds[3]],
     )  # fmt: skip

@@ -1,9 +1,9 @@
 """Tet volumes: the robust profile's volume floor and the step's inversion check.
 
-:func:`_enforce_volume_floor` lifts every tet whose det F fell below the floor back to it (a
+:func:`enforce_volume_floor` lifts every tet whose det F fell below the floor back to it (a
 hard one-sided constraint, the tets below it projected together), after a substep's sweeps;
-:func:`_count_below_volume_floor` is its screen on two threads for large meshes;
-:func:`_min_volume_ratio` is the smallest det F a step reports (<= 0: inverted). The floor is
+:func:`count_below_volume_floor` is its screen on two threads for large meshes;
+:func:`min_volume_ratio` is the smallest det F a step reports (<= 0: inverted). The floor is
 a guard, not a cure: a tet held at it is far from the FE's answer there.
 """
 
@@ -14,12 +14,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 #: Rounds of the floor's joint projection per substep (each a Newton step on every tet below
-#: the floor; see :func:`_enforce_volume_floor`).
-_FLOOR_ROUNDS = 8
+#: the floor; see :func:`enforce_volume_floor`).
+FLOOR_ROUNDS = 8
 #: How far above the floor the projection aims (relative).
-_FLOOR_MARGIN = 1e-3
+FLOOR_MARGIN = 1e-3
 #: At most this many tets are lifted together (one dense solve); more are taken in blocks.
-_FLOOR_BLOCK = 64
+FLOOR_BLOCK = 64
 #: From this many tets a step on two threads screens for the volume floor on both first;
 #: below it, waking the second thread costs more than the screen saves.
 PARALLEL_SCREEN_TETS = 100_000
@@ -86,15 +86,17 @@ def _node_gradients(
 
 
 @nb.njit(parallel=True, cache=True)
-def _count_below_volume_floor(
+def count_below_volume_floor(
     x: NDArray[np.float64],
     tets: NDArray[np.int64],
     inv_det_dm: NDArray[np.float64],
     volume_floor: float,
 ) -> int:
-    """How many tets have det F < ``volume_floor``: :func:`_enforce_volume_floor`'s screen on
+    """How many tets have det F < ``volume_floor``: :func:`enforce_volume_floor`'s screen on
     two threads, run first on large meshes (from :data:`PARALLEL_SCREEN_TETS` tets), where
-    no tet is below the floor in nearly every substep; it reads every tet every substep."""
+    no tet is below the floor in nearly every substep; it reads every tet every substep.
+    ``x``: node positions [m], (node_count, 3); ``tets`` (tet_count, 4); ``inv_det_dm``:
+    1 / det Dm per tet [1/m^3], (tet_count,); ``volume_floor``: a det F (dimensionless)."""
     count = 0
     for t in nb.prange(tets.shape[0]):
         if _edge_determinant(x, tets, t) * inv_det_dm[t] < volume_floor:
@@ -103,7 +105,7 @@ def _count_below_volume_floor(
 
 
 @nb.njit(cache=True)
-def _enforce_volume_floor(
+def enforce_volume_floor(
     x: NDArray[np.float64],
     inv_mass: NDArray[np.float64],
     tets: NDArray[np.int64],
@@ -121,14 +123,15 @@ def _enforce_volume_floor(
     penetration reports). The tets below the floor are projected together, one Newton step
     on all their constraints at once (C_i = det F_i - floor, the 4-node gradients G_i,
     (G W G^T) mu = -C, W the inverse masses), repeated while any tet is below (at most
-    :data:`_FLOOR_ROUNDS` rounds): projected one at a time, two slivers sharing a face undo
+    :data:`FLOOR_ROUNDS` rounds): projected one at a time, two slivers sharing a face undo
     each other's lift. ``inv_det_dm``: 1 / det Dm per tet [1/m^3], (tet_count,); the other
-    arguments as :func:`~tissue.pbd.sweep._project_tets`.
+    arguments as :func:`~tissue.pbd.sweep.project_tets`. Returns the tets projected, summed
+    over the rounds (0: none was below the floor).
     """
     f = np.empty((3, 3))
     cof = np.empty((3, 3))
     hits = 0
-    for _ in range(_FLOOR_ROUNDS):
+    for _ in range(FLOOR_ROUNDS):
         # A cheap screen first: det F = det Ds / det Dm from the edges alone.
         active = np.empty(tets.shape[0], dtype=np.int64)
         count = 0
@@ -138,11 +141,11 @@ def _enforce_volume_floor(
                 count += 1
         if count == 0:
             break
-        # Joint projections of up to _FLOOR_BLOCK tets at a time (a dense solve each).
-        for first in range(0, count, _FLOOR_BLOCK):
+        # Joint projections of up to FLOOR_BLOCK tets at a time (a dense solve each).
+        for first in range(0, count, FLOOR_BLOCK):
             _lift_together(
-                x, inv_mass, tets, dm_inv, active[first : min(first + _FLOOR_BLOCK, count)],
-                volume_floor * (1.0 + _FLOOR_MARGIN), support, f, cof,
+                x, inv_mass, tets, dm_inv, active[first : min(first + FLOOR_BLOCK, count)],
+                volume_floor * (1.0 + FLOOR_MARGIN), support, f, cof,
             )  # fmt: skip
         hits += count
     return hits
@@ -161,7 +164,7 @@ def _lift_together(
     cof: NDArray[np.float64],
 ) -> None:
     """One Newton step of the constraints det F_i = ``target`` of the tets ``active`` at once
-    (see :func:`_enforce_volume_floor`); ``f`` and ``cof`` are (3, 3) scratch."""
+    (see :func:`enforce_volume_floor`); ``f`` and ``cof`` are (3, 3) scratch."""
     count = active.shape[0]
     grads = np.empty((count, 4, 3))
     lift = np.empty(count)
@@ -210,7 +213,7 @@ def _apply(
     support: NDArray[np.float64],
 ) -> None:
     """Move tet ``t``'s free nodes by M^-1 (g d_dev + gh d_hyd); a fixed node's share goes to
-    ``support`` (see :func:`~tissue.pbd.sweep._project_tets`)."""
+    ``support`` (see :func:`~tissue.pbd.sweep.project_tets`)."""
     for local in range(4):
         node = tets[t, local]
         w = inv_mass[node]
@@ -223,10 +226,13 @@ def _apply(
 
 
 @nb.njit(cache=True)
-def _min_volume_ratio(
+def min_volume_ratio(
     x: NDArray[np.float64], tets: NDArray[np.int64], rest_volume: NDArray[np.float64]
 ) -> float:
-    """Smallest deformed / rest signed tet volume (det F); <= 0 means an inverted tet."""
+    """Smallest deformed / rest signed tet volume (det F); <= 0 means an inverted tet.
+
+    ``x``: node positions [m], (node_count, 3); ``tets`` (tet_count, 4); ``rest_volume``:
+    rest tet volumes [m^3], (tet_count,)."""
     smallest = np.inf
     for t in range(tets.shape[0]):
         ratio = _edge_determinant(x, tets, t) / 6.0 / rest_volume[t]
