@@ -79,7 +79,7 @@ def _uncalibrated(contact: str, profile: str) -> Any:
         return None
     from tissue.pbd import PBDConfig
 
-    return PBDConfig.for_mode(profile)
+    return PBDConfig.for_profile(profile)
 
 
 def announce_compilation(log: Callable[[str], None] = print) -> None:

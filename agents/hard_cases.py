@@ -153,7 +153,7 @@ def build_case_model(
     )
     if method == "pbd":
         return make_contact_model(
-            method, mesh, shape, materials=materials, config=PBDConfig.for_mode(config)
+            method, mesh, shape, materials=materials, config=PBDConfig.for_profile(config)
         )
     kwargs: dict[str, Any] = {"materials": materials, "config": SimulationConfig(mode=config)}
     if method == "penalty":

@@ -335,22 +335,25 @@ def test_bad_constructor_arguments(block: TetMesh) -> None:
 def test_calibration_mismatch_within_documented_bounds(mode: str, lesion_bound) -> None:
     """The stored scales of each configuration still match the FE on the default phantom
     (about 5 s and 10 s); the robust one (measured 9.6 %, against 30.2 %) much closer."""
-    result = calibrate_pbd(config=PBDConfig.for_mode(mode), fit=False)
+    result = calibrate_pbd(config=PBDConfig.for_profile(mode), fit=False)
     print(result.summary())
     assert result.pbd.status is StepStatus.OK
     assert abs(result.force_mismatch) <= pbd.CALIBRATION_FORCE_BOUND
     assert result.lesion_mismatch <= (lesion_bound or pbd.CALIBRATION_LESION_BOUND)
 
 
-def test_configurations_by_mode() -> None:
-    assert PBDConfig.for_mode("paper") == PBDConfig()
-    robust = PBDConfig.for_mode("robust")
+def test_configurations_by_profile() -> None:
+    assert PBDConfig.for_profile("paper") == PBDConfig()
+    robust = PBDConfig.for_profile("robust")
     assert robust.substeps == pbd.ROBUST_SUBSTEPS > PBDConfig().substeps
     assert robust.volume_compliance_scale == pbd.ROBUST_VOLUME_COMPLIANCE_SCALE
     assert robust.volume_floor == pbd.ROBUST_VOLUME_FLOOR > PBDConfig().volume_floor == 0.0
     assert (robust.sweep_domains, PBDConfig().sweep_domains) == (2, 1)
-    with pytest.raises(ConfigError, match="unknown PBD configuration 'fast'"):
-        PBDConfig.for_mode("fast")
+    assert PBDConfig.preset("robust") == robust
+    with pytest.raises(ConfigError, match="unknown profile 'fast'"):
+        PBDConfig.for_profile("fast")
+    with pytest.raises(ConfigError, match="unknown PBD preset 'fast'; choose 'baseline'"):
+        PBDConfig.preset("fast")
 
 
 @pytest.mark.slow
@@ -494,7 +497,7 @@ def test_tet_sweep_is_the_constraint_projection_written_with_numpy() -> None:
     matrix form, over every tet of a deformed phantom with its fixed base and multipliers
     already accumulated (so that every term of the update acts)."""
     mesh = breast_phantom(1363)
-    a = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_mode("robust")).arrays
+    a = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_profile("robust")).arrays
     rng = np.random.default_rng(11)
     x0 = mesh.nodes[a.node_order] + rng.normal(scale=5e-4, size=(mesh.node_count, 3))
     lam0 = rng.normal(scale=1e-9, size=(2, mesh.tet_count))
@@ -530,7 +533,7 @@ def signatures():
 
 mesh = block_mesh((0.04, 0.04, 0.02), (8, 8, 4))
 shape = BoxProbe((0.016, 0.01, 0.016))
-model = pbd.PBDContact(mesh, shape, config=pbd.PBDConfig.for_mode("robust"))
+model = pbd.PBDContact(mesh, shape, config=pbd.PBDConfig.for_profile("robust"))
 built = signatures()
 top, centre = mesh.nodes[:, 2].max(), mesh.nodes.mean(axis=0)
 for step in range(1, 11):
@@ -563,7 +566,7 @@ def test_two_domain_sweep_is_the_serial_sweep_in_its_order() -> None:
     """The two threads' sweep gives the one-thread sweep's bits (on a machine with one
     core the check still runs, both sides on one thread)."""
     mesh = breast_phantom(1363)
-    a = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_mode("robust")).arrays
+    a = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_profile("robust")).arrays
     rng = np.random.default_rng(5)
     x0 = mesh.nodes[a.node_order] + rng.normal(scale=2e-4, size=(mesh.node_count, 3))
     results = []
@@ -588,7 +591,7 @@ def test_contact_zone_sweeps_are_the_calls_they_fuse() -> None:
     """One compiled call for a substep's contacts and contact-zone sweeps gives the bits of
     the calls it replaced: the contacts, the zone, then (zone sweep, contacts) x 3."""
     mesh = breast_phantom(1363)
-    model = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_mode("robust"))
+    model = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_profile("robust"))
     top = mesh.nodes[:, 2].max()
     centre = 0.5 * (mesh.nodes.min(axis=0) + mesh.nodes.max(axis=0))
     probe = Probe.looking_along(PROBE_SHAPE, (centre[0], centre[1], top - 0.002), (0, 0, -1))
@@ -628,7 +631,7 @@ def test_contact_zone_sweeps_are_the_calls_they_fuse() -> None:
 
 def test_parallel_floor_screen_counts_the_tets_below_the_floor() -> None:
     mesh = breast_phantom(1363)
-    a = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_mode("robust")).arrays
+    a = PBDContact(mesh, PROBE_SHAPE, config=PBDConfig.for_profile("robust")).arrays
     rng = np.random.default_rng(7)
     x = mesh.nodes[a.node_order] + rng.normal(scale=2e-3, size=(mesh.node_count, 3))
     corners = x[a.tets]
@@ -648,7 +651,7 @@ def test_two_domain_order_keeps_the_public_state_in_mesh_numbering() -> None:
     mesh = breast_phantom(1363)
     top = mesh.nodes[:, 2].max()
     centre = 0.5 * (mesh.nodes.min(axis=0) + mesh.nodes.max(axis=0))
-    robust = PBDConfig.for_mode("robust")
+    robust = PBDConfig.for_profile("robust")
     results = {}
     for domains in (1, 2):
         model = PBDContact(mesh, PROBE_SHAPE, config=replace(robust, sweep_domains=domains))

@@ -81,8 +81,9 @@ class ProfileChoices:
             sliding, with the skin between its nodes guarded; otherwise the set chosen at
             first contact (:mod:`tissue.contact.prescribed`).
         pbd_preset: the XPBD tissue's settings: ``baseline`` (10 substeps, FleX-like) or
-            ``robust`` (60 substeps, a volume floor, skin contact points)
-            (:meth:`tissue.pbd.PBDConfig.preset`).
+            ``robust`` (60 substeps, a volume floor) (:meth:`tissue.pbd.PBDConfig.preset`).
+        pbd_skin_contact: a PBD tissue built through the front door also takes contact points
+            on the skin between the boundary nodes (the study runs the presets alone).
     """
 
     newton: bool
@@ -93,6 +94,7 @@ class ProfileChoices:
     augmented_penalty: bool
     online_prescribed: bool
     pbd_preset: str
+    pbd_skin_contact: bool
 
 
 #: Every profile's choices (the module docstring says why).
@@ -106,6 +108,7 @@ PROFILES: dict[Profile, ProfileChoices] = {
         augmented_penalty=False,
         online_prescribed=False,
         pbd_preset="baseline",
+        pbd_skin_contact=False,
     ),
     Profile.ROBUST: ProfileChoices(
         newton=True,
@@ -116,6 +119,7 @@ PROFILES: dict[Profile, ProfileChoices] = {
         augmented_penalty=True,
         online_prescribed=True,
         pbd_preset="robust",
+        pbd_skin_contact=True,
     ),
 }
 

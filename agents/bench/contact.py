@@ -26,7 +26,7 @@ Every strategy sees the same probe path. Per method, mode and level one record:
 
 Methods: ``penalty``, ``lm``, ``prescribed`` (always with ``online=True``: the node set
 follows the probe's footprint, as a user without a pre-computed node set would run it) and
-``pbd`` (paper: 10 substeps; robust: 60, :meth:`tissue.pbd.PBDConfig.for_mode`).
+``pbd`` (paper: 10 substeps; robust: 60, :meth:`tissue.pbd.PBDConfig.for_profile`).
 
 The speed targets, printed against the measurements: penalty and prescribed in paper mode
 <= 5 ms per step up to 4.1k tets and <= 20 ms (real time at 0.02 s) up to 26k tets; LM <= 2 x
@@ -99,7 +99,9 @@ def benchmark_one(method: str, mode: str, level: int, steps: int) -> dict[str, A
     mesh = breast_phantom(level)
     shape = linear_probe()
     kwargs: dict[str, Any] = {}
-    kwargs["config"] = PBDConfig.for_mode(mode) if method == "pbd" else SimulationConfig(mode=mode)
+    kwargs["config"] = (
+        PBDConfig.for_profile(mode) if method == "pbd" else SimulationConfig(mode=mode)
+    )
     if method == "prescribed":
         kwargs["params"] = PrescribedParams(online=True)
     model = make_contact_model(method, mesh, shape, **kwargs)

@@ -61,7 +61,7 @@ def run_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
         None,
         online if prescribed else None,
         node_set,
-        pbd_config=PBDConfig.for_mode(cell.config.value),
+        pbd_config=PBDConfig.for_profile(cell.config.value),
     )
     start, stops = scene.path(mesh, shape, cell.lesion, spec.depths_m)
     monitor = StabilityMonitor(cell.method, mesh.nodes, start.position, STUDY_LIMITS)

@@ -7,7 +7,7 @@
   load, the paper's Table 1 beside ours, and a paragraph of what the run shows.
 
 PBD has both profiles too: ``paper`` is the 10-substep, FleX-like baseline, ``robust`` runs
-60 substeps (:meth:`tissue.pbd.PBDConfig.for_mode`).
+60 substeps (:meth:`tissue.pbd.PBDConfig.for_profile`).
 """
 
 from __future__ import annotations

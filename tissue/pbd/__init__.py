@@ -49,7 +49,7 @@ Profiles
 --------
 ``paper`` (``PBDConfig()``, what a real-time engine runs): 10 substeps, 1 iteration, 3
 contact-zone sweeps, damping 2/s, hard contact on the boundary nodes, mesh-order sweep.
-``robust`` (``PBDConfig.for_mode("robust")``): 60 substeps (:data:`ROBUST_SUBSTEPS`), contact
+``robust`` (``PBDConfig.for_profile("robust")``): 60 substeps (:data:`ROBUST_SUBSTEPS`), contact
 points at most 4 mm apart, damping 30/s, the two-domain sweep, and a volume floor: no tet
 ends a substep with det F below 0.1 (:data:`ROBUST_VOLUME_FLOOR`), the tets below it lifted
 together by a hard one-sided constraint (diagnostics ``volume_floor_projections``). The front

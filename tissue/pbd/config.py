@@ -1,6 +1,6 @@
 """The XPBD tissue's settings: :class:`PBDConfig`, its two profiles and their calibrated scales.
 
-``PBDConfig()`` is the ``paper`` profile, ``PBDConfig.for_mode("robust")`` the ``robust`` one
+``PBDConfig()`` is the ``paper`` profile, ``PBDConfig.for_profile("robust")`` the ``robust`` one
 (see :mod:`tissue.pbd`); the constants below are the values that profile and the calibration
 fixed.
 """
@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from tissue.errors import ConfigError, check_setting_names
-from tissue.profile import PAPER_TISSUE_DT_S, check_tissue_dt
+from tissue.profile import PAPER_TISSUE_DT_S, Profile, check_tissue_dt, profile_choices
 
 #: The paper profile's deviatoric compliance scale, fitted by
 #: :func:`tissue.pbd.calibration.calibrate_pbd` (10 substeps, the boundary nodes as contact).
@@ -155,13 +155,17 @@ class PBDConfig:
             )
 
     @classmethod
-    def for_mode(cls, mode: str) -> PBDConfig:
-        """The calibrated settings of a study configuration: ``paper`` (the defaults, 10
-        substeps, a FleX-like baseline) or ``robust`` (:data:`ROBUST_SUBSTEPS` substeps with
-        their own calibrated scales; about 6 x the time per step, see :mod:`tissue.pbd`).
-        """
-        name = str(getattr(mode, "value", mode))
-        if name == "paper":
+    def for_profile(cls, profile: Profile | str) -> PBDConfig:
+        """The calibrated settings of ``profile``: its :attr:`~tissue.profile.ProfileChoices.
+        pbd_preset` (:meth:`preset`)."""
+        return cls.preset(profile_choices(profile).pbd_preset)
+
+    @classmethod
+    def preset(cls, name: str) -> PBDConfig:
+        """Calibrated settings by name: ``baseline`` (the defaults, 10 substeps, FleX-like)
+        or ``robust`` (:data:`ROBUST_SUBSTEPS` substeps with their own calibrated scales and a
+        volume floor; about 6 x the time per step, see :mod:`tissue.pbd`)."""
+        if name == "baseline":
             return cls()
         if name == "robust":
             return cls(
@@ -173,7 +177,7 @@ class PBDConfig:
                 volume_floor=ROBUST_VOLUME_FLOOR,
                 sweep_domains=2,
             )
-        raise ConfigError(f"unknown PBD configuration {mode!r}; choose 'paper' or 'robust'")
+        raise ConfigError(f"unknown PBD preset {name!r}; choose 'baseline' or 'robust'")
 
     @classmethod
     def from_overrides(cls, **overrides: Any) -> PBDConfig:

@@ -43,6 +43,7 @@ from tissue.pbd.volume import (
     min_volume_ratio,
 )
 from tissue.probe import ProbeShape, unit_quat_to_matrix
+from tissue.profile import profile_choices
 from tissue.status import StepStatus
 
 
@@ -141,18 +142,18 @@ class PBDContact(ContactModel):
     @classmethod
     def settings_for(cls, spec: Any, mesh: TetMesh, materials: Any) -> tuple[Any, Any]:
         """PBD's own tissue settings (``config``; no separate ``params``): the given
-        :class:`PBDConfig`, else the profile's (:meth:`PBDConfig.for_mode`) at the spec's
+        :class:`PBDConfig`, else the profile's (:meth:`PBDConfig.for_profile`) at the spec's
         time step, calibrated for ``mesh`` against robust LM
-        (:func:`tissue.pbd.calibration.calibrated_pbd_config`, cached on disk). The robust
-        profile adds contact points on the skin between the boundary nodes."""
+        (:func:`tissue.pbd.calibration.calibrated_pbd_config`, cached on disk), with contact
+        points on the skin between the boundary nodes where the profile chooses them."""
         if spec.contact_params is not None:
             return spec.contact_params, None
         from tissue.pbd.calibration import calibrated_pbd_config
-        from tissue.profile import Profile
 
-        robust = Profile.parse(spec.profile) is Profile.ROBUST
         base = replace(
-            PBDConfig.for_mode(spec.profile), tissue_dt=spec.tissue_dt, skin_contact=robust
+            PBDConfig.for_profile(spec.profile),
+            tissue_dt=spec.tissue_dt,
+            skin_contact=profile_choices(spec.profile).pbd_skin_contact,
         )
         return calibrated_pbd_config(mesh, materials, base), None
 
