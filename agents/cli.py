@@ -318,9 +318,8 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         return run_study_command(args)
     if args.command == "hard-cases":
         from agents.hard_cases import SMALL_CASES, run_catalogue
-        from tissue.sim.integrator import IntegrationMode
 
-        configs = [IntegrationMode.parse(c).value for c in args.config.split(",")]
+        configs = [Profile.parse(c).value for c in args.config.split(",")]
         cases = args.cases.split(",") if args.cases else list(SMALL_CASES)
         run_catalogue(cases, args.methods.split(","), configs, args.level, args.scene, args.json)
         return 0

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numba
 import numpy as np
 import pytest
@@ -16,7 +18,7 @@ from tissue.errors import ConfigError, TissueInputError
 from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.mesh.block import block_mesh
 from tissue.probe import BoxProbe, Probe, SphereProbe, linear_probe
-from tissue.sim.integrator import ChordHandOver
+from tissue.sim.integrator import ChordHandOver, IntegratorConfig
 from tissue.sim.pardiso import pardiso_available
 from tissue.sim.simulator import SimulationConfig
 from tissue.sim.solvers import SERIAL_STEP_UNKNOWNS
@@ -119,15 +121,14 @@ def test_kept_solves_stop_at_the_accuracy_the_newton_tolerance_needs(
     """With a kept factorisation, robust LM's free and response solves stop once their
     residual is what the Newton tolerance needs (as the integrator's Newton's do), not only at
     a tenth of the last residual: fewer CG iterations, the same press."""
-    from tissue.contact.lagrange import newton
-
     shape = SphereProbe(0.01)
     outcomes = []
     # No absolute floor (the relative tolerance alone), then the default one.
-    for share in (0.0, newton.LINEAR_SHARE_OF_TOLERANCE):
-        monkeypatch.setattr(newton, "LINEAR_SHARE_OF_TOLERANCE", share)
+    for share in (0.0, IntegratorConfig.linear_share_of_tolerance):
         params = LagrangeParams(keep_factorization_unknowns=0)
         model = _model("lm", block, shape, mode="robust", quasi=quasi, params=params)
+        integrator = model.sim.integrator
+        integrator.config = replace(integrator.config, linear_share_of_tolerance=share)
         solver = model.sim.integrator.solver
         iterations = 0
 

@@ -12,7 +12,7 @@ from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.mesh import node_dofs
 from tissue.mesh.block import block_mesh
 from tissue.mesh.io import nodes_on_plane
-from tissue.sim.integrator import CHORD_BACKOFF_MAX_STEPS, ChordHandOver
+from tissue.sim.integrator import ChordHandOver, IntegratorConfig
 from tissue.sim.simulator import SimulationConfig, TissueSimulator, settle
 from tissue.sim.solvers import ConstrainedSystem
 from tissue.status import StepStatus
@@ -325,13 +325,13 @@ def test_line_search_extrapolates_a_full_step_that_falls_short(fraction: float) 
     to the secant's zero of the directional derivative: exact on a quadratic, capped at 4.
     Past half of Newton's step (the energy falling at under half its initial rate at its end)
     the step is kept as it is."""
-    from tissue.sim.integrator import ImplicitIntegrator
+    from tissue.sim.integrator.line_search import line_search
 
     energy = _Quadratic()
     y = np.zeros(6)
     e0, g0, _ = energy(y)
     newton = -np.linalg.solve(energy.a, g0)
-    found = ImplicitIntegrator._line_search(None, y, fraction * newton, g0, 0.0, energy, e0)
+    found = line_search(y, fraction * newton, g0, 0.0, energy, e0, config=IntegratorConfig())
     assert found is not None
     point, point_energy, point_gradient, _ = found
     expected = (min(4.0, 1.0 / fraction) if fraction < 0.5 else 1.0) * fraction * newton
@@ -345,14 +345,15 @@ def test_line_search_keeps_a_good_full_step_and_evaluates_last_where_it_ends() -
     """Newton's own step is kept without a further evaluation; a step whose extrapolation
     does not lower the energy is kept too, evaluated again (contact terms report the last
     evaluation's forces)."""
-    from tissue.sim.integrator import ImplicitIntegrator
+    from tissue.sim.integrator.line_search import line_search
 
+    config = IntegratorConfig()
     energy = _Quadratic()
     y = np.zeros(6)
     e0, g0, _ = energy(y)
     newton = -np.linalg.solve(energy.a, g0)
     evaluations = len(energy.evaluated)
-    point, *_ = ImplicitIntegrator._line_search(None, y, newton, g0, 0.0, energy, e0)
+    point, *_ = line_search(y, newton, g0, 0.0, energy, e0, config=config)
     np.testing.assert_allclose(point, newton, rtol=1e-12)
     assert len(energy.evaluated) == evaluations + 1
 
@@ -363,9 +364,7 @@ def test_line_search_keeps_a_good_full_step_and_evaluates_last_where_it_ends() -
             return (e + 1.0 if beyond else e), g, s
 
     rising = _RisesBeyondOne()
-    point, point_energy, *_ = ImplicitIntegrator._line_search(
-        None, y, 0.3 * newton, g0, 0.0, rising, e0
-    )
+    point, point_energy, *_ = line_search(y, 0.3 * newton, g0, 0.0, rising, e0, config=config)
     np.testing.assert_allclose(point, 0.3 * newton, rtol=1e-12)
     assert len(rising.evaluated) == 3  # the step, its extrapolation, the step again
     np.testing.assert_array_equal(rising.evaluated[-1], point)
@@ -439,7 +438,8 @@ def test_chord_hand_over_backs_off_after_chords_that_needed_more_iterations() ->
     system = ConstrainedSystem(
         sp.identity(dofs, format="csr"), np.zeros(dofs), constrained, np.zeros(dofs)
     )
-    chords = ChordHandOver()
+    cap = IntegratorConfig().chord_backoff_max_steps
+    chords = ChordHandOver(cap)
 
     def step(took: bool, iterations: int, full_exact: bool = True) -> bool:
         """A converged step; whether the next step is handed a matrix."""
@@ -461,7 +461,7 @@ def test_chord_hand_over_backs_off_after_chords_that_needed_more_iterations() ->
     assert step(False, 1)
     for _ in range(10):
         step(True, 2)
-    assert chords._backoff == CHORD_BACKOFF_MAX_STEPS
+    assert chords._backoff == cap
     chords.reset()
     assert step(False, 1)
     chords._backoff = 8

@@ -141,3 +141,18 @@ def test_the_layer_check_sees_an_upward_import(tmp_path, monkeypatch) -> None:
     monkeypatch.setattr(layout, "ROOT", tmp_path)
     with pytest.raises(AssertionError, match="lies above"):
         layout.test_tissue_layers_import_only_downwards()
+
+
+def test_only_tissue_profile_compares_profiles() -> None:
+    """What a profile decides is written in tissue/profile.py; the layers below read its
+    choices by name (profile_choices(mode).newton), never compare profiles themselves."""
+    import re
+
+    comparison = re.compile(
+        r"(\bis\b|\bis not\b|==|!=)\s*Profile\.|\b(mode|profile)\s*(==|!=|\bis\b)\s"
+    )
+    for path in sorted((ROOT / "tissue").rglob("*.py")):
+        if path.name == "profile.py" and path.parent.name == "tissue":
+            continue
+        for number, line in enumerate(path.read_text().splitlines(), start=1):
+            assert not comparison.search(line), f"{path}:{number} compares profiles: {line}"

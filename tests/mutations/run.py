@@ -92,7 +92,7 @@ MUTATIONS = (
     ),
     Mutation(
         "backward Euler without the mass-proportional damping",
-        "tissue/sim/integrator.py",
+        "tissue/sim/integrator/potential.py",
         "                m / (h * h) + cfg.rayleigh_mass * m / h,",
         "                m / (h * h),",
         ("tests/test_integrator.py", "-k", "mass_damping"),

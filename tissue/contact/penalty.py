@@ -50,7 +50,7 @@ Newton iterations in a step (lesion 8: 12 -> 10; lesion 3: 19 -> 9; 12,861 tets,
 rim, as the exact tangent's full steps did for LM's dynamic steps.
 What helps instead is the integrator's extrapolating line search (a full step whose
 directional derivative is still below half the initial one tries the secant step, up to 4 x;
-``tissue.sim.integrator._extrapolate``): that cell's steps 639-645 took 145 s instead of 206 s
+``tissue.sim.integrator.line_search``): that cell's steps 639-645 took 145 s instead of 206 s
 (all its steps 730 s instead of 886 s, 22 over 5 s), one of them split (643: 99 s, five
 augmentation rounds, each solve restarting from the step's start) where four were; steps
 where it does not act are bit-identical.

@@ -28,11 +28,11 @@ from tissue.errors import ConfigError, TissueInputError, check_setting_names
 from tissue.fem.elasticity import AntiLocking, Elasticity
 from tissue.fem.material import TissueMaterials
 from tissue.mesh import TetMesh, check_rigid_motion_removed, node_dofs
+from tissue.profile import PAPER_TISSUE_DT_S, Profile, check_tissue_dt, profile_choices
 from tissue.sim.frames import NodeFrames
 from tissue.sim.integrator import (
     EnergyTerm,
     ImplicitIntegrator,
-    IntegrationMode,
     IntegratorConfig,
     StepOutcome,
 )
@@ -40,32 +40,25 @@ from tissue.sim.solvers import SERIAL_STEP_UNKNOWNS, LinearSolverConfig
 from tissue.status import StepStatus
 from tissue.threads import one_thread_below, thread_policy
 
-#: Robust mode's inversion barrier: below this volume ratio a tet's energy rises without
-#: bound (:class:`tissue.fem.elasticity.Elasticity`). A tissue tet at nu = 0.49 keeps far more
-#: than a tenth of its volume under any physical compression, so the barrier leaves those
-#: untouched; it acts where a Dirichlet condition or a point-like contact on a
-#: coarse mesh flattens a tet: measured on the 1,363-tet phantom (lesion 2, prescribed
-#: displacement with one node in contact at 29 mm), the stable law alone let a tet invert.
-ROBUST_INVERSION_BARRIER = 0.1
-
 
 @dataclass(frozen=True)
 class SimulationConfig:
     """Everything that decides how the tissue is simulated.
 
     Attributes:
-        tissue_dt: the tissue time step h [s] (0.02 s as the paper).
-        mode: ``paper`` (one linearised backward-Euler solve per step, eq. 5 of the paper) or
-            ``robust`` (Newton with line search, PSD tangents, step subdivision).
+        tissue_dt: the tissue time step h [s] (the paper's by default).
+        mode: the profile, ``paper`` (one linearised backward-Euler solve per step, eq. 5 of
+            the paper) or ``robust`` (Newton with line search, PSD tangents, step
+            subdivision); the defaults below marked "the profile's" are its choices
+            (:data:`tissue.profile.PROFILES`).
         quasi_static: seek static equilibrium every step instead of integrating dynamics.
-        linear_solver: ``cg``, ``direct`` or ``reuse``; None picks the mode's default.
+        linear_solver: ``cg``, ``direct`` or ``reuse``; None: the profile's.
         cg_max_iterations: cap of the CG solver (25 as the paper).
         anti_locking: ``none`` or ``anp`` (average nodal pressure against volumetric locking).
-        project_psd: project element tangents to PSD; None: robust yes, paper no.
+        project_psd: project element tangents to PSD; None: the profile's.
         inversion_barrier: the volume ratio J below which a barrier keeps tets from
-            inverting (see :class:`tissue.fem.elasticity.Elasticity`); None:
-            :data:`ROBUST_INVERSION_BARRIER` in robust mode, 0 (off, the law as published) in
-            paper mode.
+            inverting (see :class:`tissue.fem.elasticity.Elasticity`); None: the profile's
+            (robust 0.1; paper 0, the law as published).
         rayleigh_mass: r_M [1/s]. rayleigh_stiffness: r_K [s].
         newton_tolerance: relative residual of a converged robust step.
         newton_max_iterations: Newton iterations before a step is not converged.
@@ -74,8 +67,8 @@ class SimulationConfig:
             gravity, so gravity is off by default).
     """
 
-    tissue_dt: float = 0.02
-    mode: IntegrationMode | str = IntegrationMode.PAPER
+    tissue_dt: float = PAPER_TISSUE_DT_S
+    mode: Profile | str = Profile.PAPER
     quasi_static: bool = False
     linear_solver: str | None = None
     cg_max_iterations: int = 25
@@ -90,18 +83,12 @@ class SimulationConfig:
     gravity_m_s2: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.tissue_dt, (int, float)) and 0 < self.tissue_dt <= 1.0):
-            raise ConfigError(
-                f"tissue_dt must be a time step in seconds in (0, 1]; got {self.tissue_dt!r} "
-                "(the paper uses 0.02)"
-            )
-        object.__setattr__(self, "mode", IntegrationMode.parse(self.mode))
+        check_tissue_dt(self.tissue_dt)
+        object.__setattr__(self, "mode", Profile.parse(self.mode))
         object.__setattr__(self, "anti_locking", AntiLocking.parse(self.anti_locking))
         if self.inversion_barrier is None:
-            robust = self.mode is IntegrationMode.ROBUST
-            object.__setattr__(
-                self, "inversion_barrier", ROBUST_INVERSION_BARRIER if robust else 0.0
-            )
+            barrier = profile_choices(self.mode).inversion_barrier
+            object.__setattr__(self, "inversion_barrier", barrier)
         elif not (
             isinstance(self.inversion_barrier, (int, float)) and 0.0 <= self.inversion_barrier < 1.0
         ):

@@ -50,12 +50,7 @@ from tissue.contact.fe_model import (
 from tissue.contact.lagrange.response import ContactResponses
 from tissue.contact.lagrange.state import _report
 from tissue.contact.lagrange.tangent import ContactTangent
-from tissue.sim.integrator import (
-    LINEAR_SHARE_OF_TOLERANCE,
-    PROJECTION_SWITCH,
-    RESIDUAL_SCALE_FLOOR,
-    IncrementalPotential,
-)
+from tissue.sim.integrator import IncrementalPotential
 from tissue.sim.solvers import ConstrainedSystem, Factorization, vector_norm
 from tissue.status import StepStatus
 
@@ -207,7 +202,7 @@ class RobustSteps(ContactResponses, ContactTangent):
             potential=potential,
             constrained=constrained,
             free=free,
-            scale_floor=RESIDUAL_SCALE_FLOOR * integrator._force_unit,
+            scale_floor=integrator.config.residual_scale_floor * integrator._force_unit,
             keep=y.size >= self.params.keep_factorization_unknowns,
             dynamic=dynamic,
             # Dynamic steps with stiffness damping try the exact tangent first, as the
@@ -390,7 +385,7 @@ class RobustSteps(ContactResponses, ContactTangent):
         iteration for far more accuracy than its chord step keeps.
         """
         cfg = self.sim.integrator.config
-        share = LINEAR_SHARE_OF_TOLERANCE
+        share = cfg.linear_share_of_tolerance
         tolerance = min(1e-2, max(0.1 * run.at.residual, 1e-10))
         enough = 0.5 * share * cfg.newton_tolerance
         enough *= max(run.at.scale, run.scale_floor)
@@ -410,7 +405,7 @@ class RobustSteps(ContactResponses, ContactTangent):
         frictionless probe ended on the slid equilibrium, at half the force).
         """
         cfg = self.sim.integrator.config
-        far = bool(cfg.project_psd) and run.at.residual > PROJECTION_SWITCH
+        far = bool(cfg.project_psd) and run.at.residual > cfg.projection_switch
         if run.exact_first:
             return not run.exact_trusted
         return (

@@ -47,7 +47,7 @@ class LagrangeState(FEContactModel):
         # from exactly that state, extrapolates its first iterate from it.
         self._last_step: tuple[NDArray, NDArray, NDArray, float] | None = None
         # A converged dynamic step's matrix, handed to the next (modified Newton).
-        self._chords = ChordHandOver()
+        self._chords = ChordHandOver(self.sim.integrator.config.chord_backoff_max_steps)
         # W~ is cached per kept factorisation and LM refreshes it by its own rules (response
         # rounds, exact iterations): no amortised refresh behind its back.
         solver = self.sim.integrator.solver
