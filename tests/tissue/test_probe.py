@@ -27,7 +27,7 @@ from tissue.probe import (
 )
 
 PUBLISHED_PROBE = (
-    Path(__file__).resolve().parents[2] / "shared" / "paper-scene" / "us_probe_collision.stl"
+    Path(__file__).resolve().parents[3] / "shared" / "paper-scene" / "us_probe_collision.stl"
 )
 PUBLISHED_POSES = PUBLISHED_PROBE.parent / "ground_truth"
 

@@ -18,7 +18,7 @@ import pytest
 import tissue
 from tissue.probe import Probe, matrix_to_quat, quat_to_matrix
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 METHODS = ("lm", "penalty", "prescribed", "pbd")
 PROFILES = ("paper", "robust")
 STEP_M = 0.0002  # 0.01 m/s at 0.02 s

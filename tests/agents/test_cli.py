@@ -18,7 +18,7 @@ import pytest
 
 from agents.cli import main
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 UNWRITABLE = "/proc/probegym-cannot-write/out.json"
 
 

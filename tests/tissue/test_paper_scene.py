@@ -11,7 +11,7 @@ from tissue.errors import ConfigError, MeshError
 from tissue.mesh.paper_scene import load_paper_scene, read_stl, remesh_paper_scene
 from tissue.mesh.phantom import CACHE_ENV_VAR, PHANTOM_LEVELS
 
-SCENE = Path(__file__).resolve().parents[2] / "shared" / "paper-scene"
+SCENE = Path(__file__).resolve().parents[3] / "shared" / "paper-scene"
 
 pytestmark = pytest.mark.skipif(
     not (SCENE / "breast_13k.msh").is_file(),
