@@ -72,7 +72,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from agents.bench.contact import threading_environment
+from agents.bench.contact import START_CLEARANCE_M, threading_environment
 from agents.bench.report import BenchRecord, MarkdownTable
 from agents.outputs import write_json
 from tissue.contact import make_contact_model
@@ -88,9 +88,6 @@ DEFAULT_LEVELS = (623, 4126, 26220)
 # Probe face (LX along world x, LZ along world y) and depth behind the face [m].
 PROBE_FACE_M = (0.053, 0.013)
 PROBE_DEPTH_M = 0.010
-# Just above the apex: robust mode does not converge on a step taken at rest with no load
-# (480 Newton iterations, minutes per step on the 26k level when this was written).
-START_CLEARANCE_M = 0.0001
 # Our methods, the first is the headline one (exact contact); prescribed runs online.
 OURS_METHODS = ("lm", "prescribed", "penalty")
 OURS_MODES = ("paper", "robust")

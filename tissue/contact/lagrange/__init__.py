@@ -19,7 +19,8 @@ by projected Gauss-Seidel on Signorini's conditions (gap >= 0, lambda >= 0, gap 
 
 The modules: :mod:`.params` (:class:`LagrangeParams`), :mod:`.pgs` (the LCP kernel),
 :mod:`.state` (what the model keeps between steps), :mod:`.response`, :mod:`.tangent` (the
-contact's terms of the exact tangent), :mod:`.paper`, :mod:`.newton`, :mod:`.fallbacks` and
+contact's terms of the exact tangent), :mod:`.paper`, :mod:`.iterate` (what robust mode's
+iteration carries), :mod:`.newton`, :mod:`.fallbacks` and
 :mod:`.model` (:class:`LagrangeContact`, composing them).
 
 Limitations: frictionless; W is dense over the constraints an LCP takes (tens to hundreds

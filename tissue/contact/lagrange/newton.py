@@ -35,101 +35,26 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from tissue.contact.fe_model import (
-    Contacts,
     constraint_rows,
     detect_contacts,
     transpose_product,
 )
+from tissue.contact.lagrange.iterate import FreeStep, Iterate, NewtonRun
 from tissue.contact.lagrange.response import ContactResponses
 from tissue.contact.lagrange.state import _report
 from tissue.contact.lagrange.tangent import ContactTangent
 from tissue.sim.integrator import IncrementalPotential
-from tissue.sim.solvers import ConstrainedSystem, Factorization, vector_norm
+from tissue.sim.solvers import ConstrainedSystem, vector_norm
 from tissue.status import StepStatus
 
 #: A robust Newton step that would invert a tet (the inversion barrier makes its energy
 #: infinite) is halved until none inverts, down to this fraction of the step.
 _MIN_FEASIBLE_FRACTION = 2.0**-10
-
-
-@dataclass(frozen=True, eq=False)
-class _Iterate:
-    """A Newton iterate of a robust step and what was evaluated there."""
-
-    y: NDArray[np.float64]  # positions (3N,) [m]
-    energy: float  # incremental potential [J]
-    gradient: NDArray[np.float64]  # (3N,) [N]
-    scale: float  # force scale of the residual [N]
-    contacts: Contacts  # detected at y
-    rows: sp.csr_matrix  # their constraint Jacobian H
-    forces: NDArray[np.float64]  # one per contact [N]
-    residual: float  # relative KKT residual (inf before the first iteration)
-    penetration: float  # deepest point inside the probe [m]
-
-
-@dataclass(eq=False)
-class _FreeStep:
-    """An iteration's Newton system and its free step (contact forces fixed)."""
-
-    system: ConstrainedSystem
-    # (points augmented, rho [N/m]) of the contact terms added to the tangent, or None.
-    augmented: tuple[NDArray[np.bool_], float] | None
-    # Whether the last tangent tried was the projected one.
-    project: bool
-    indefinite: bool
-    step: NDArray[np.float64] | None = None  # (3N,) [m]
-    factorization: Factorization | None = None  # of A (refactorising)
-    fresh: bool = False  # kept factorisation: F is of this A
-    accuracy: float = 0.0  # kept factorisation: the free solve's absolute residual [N]
-
-
-@dataclass(eq=False)
-class _NewtonRun:
-    """One robust step's Newton-LCP iteration: its setting, its iterate and its tallies."""
-
-    h: float  # the step [s]
-    may_retry: bool
-    relax_s: float
-    exact_first_static: bool
-    x: NDArray[np.float64]  # positions at the start (nodes, 3) [m]
-    v: NDArray[np.float64]  # velocities at the start (nodes, 3) [m/s]
-    dofs: NDArray[np.int64]  # constrained dofs and their targets [m]
-    targets: NDArray[np.float64]
-    potential: IncrementalPotential
-    constrained: NDArray[np.bool_]  # mask (3N,)
-    free: NDArray[np.bool_]
-    scale_floor: float  # the integrator's floor on the force scale [N]
-    keep: bool  # a kept factorisation
-    dynamic: bool  # a dynamic step (not quasi-static, not a relaxation step)
-    exact_first: bool  # dynamic with stiffness damping: exact tangent from the start
-    contact_terms: bool  # quasi-static: the exact tangent carries the contact terms
-    projected_iterations: int  # kept, quasi-static: iterations on the projected tangent
-    limit: int  # iteration cap
-    handed: ConstrainedSystem | None  # the last step's matrix, taken as a chord
-    started_at_x: bool
-    at: _Iterate
-    chord: ConstrainedSystem | None  # the matrix the next iteration reuses
-    chord_step: bool = False
-    system: ConstrainedSystem | None = None  # the last Newton system
-    status: StepStatus = StepStatus.NOT_CONVERGED
-    iterations: int = 0
-    sweeps_total: int = 0
-    rounds: int = 0
-    deepest: float = np.inf
-    stalled: int = 0
-    exact_iterations: int = 0
-    rejected: int = 0
-    shortened: int = 0
-    # False once this step's exact tangent was found indefinite or took a step that did
-    # not reduce the residual: projected for the rest of the step.
-    exact_trusted: bool = True
 
 
 class RobustSteps(ContactResponses, ContactTangent):
@@ -165,7 +90,7 @@ class RobustSteps(ContactResponses, ContactTangent):
 
     def _start_newton(
         self, h: float, may_retry: bool, relax_s: float, exact_first_static: bool
-    ) -> _NewtonRun:
+    ) -> NewtonRun:
         """The step's potential, its first iterate with the contacts there (their forces the
         warm start's), and the rules its iterations follow."""
         sim = self.sim
@@ -185,12 +110,12 @@ class RobustSteps(ContactResponses, ContactTangent):
         # The forces of the start, one per contact: what the step reports if it gives up in
         # its first iteration (a retry-able exact tangent found indefinite at once).
         forces = self._warm[contacts.points]
-        at = _Iterate(y, energy, gradient, scale, contacts, rows, forces, np.inf, 0.0)
+        at = Iterate(y, energy, gradient, scale, contacts, rows, forces, np.inf, 0.0)
         dynamic = not cfg.quasi_static and relax_s == 0.0
         limit = self.params.max_iterations
         if relax_s > 0.0:
             limit = min(limit, self.params.relaxation_iterations)
-        return _NewtonRun(
+        return NewtonRun(
             h=h,
             may_retry=may_retry,
             relax_s=relax_s,
@@ -303,7 +228,7 @@ class RobustSteps(ContactResponses, ContactTangent):
 
     # ------------------------------------------------------------------ one iteration
 
-    def _newton_iteration(self, run: _NewtonRun) -> bool:
+    def _newton_iteration(self, run: NewtonRun) -> bool:
         """One Newton-LCP iteration from ``run.at``; False once the step is done (converged,
         failed, or to be retried by the caller)."""
         before = run.at
@@ -366,14 +291,14 @@ class RobustSteps(ContactResponses, ContactTangent):
         run.at = after
         return not self._converged(run)
 
-    def _distrust_exact_tangent(self, run: _NewtonRun) -> bool:
+    def _distrust_exact_tangent(self, run: NewtonRun) -> bool:
         """Undo an exact step (the iterate stays ``run.at``) and take the projected tangent
         for the rest of the step; False when the caller retries the step instead."""
         run.exact_trusted = False
         run.rejected += 1
         return not (run.may_retry and run.contact_terms)
 
-    def _solve_accuracy(self, run: _NewtonRun) -> tuple[float, float]:
+    def _solve_accuracy(self, run: NewtonRun) -> tuple[float, float]:
         """The relative tolerance of this iteration's linear solves and the absolute residual
         [N] at which they may stop earlier.
 
@@ -391,7 +316,7 @@ class RobustSteps(ContactResponses, ContactTangent):
         enough *= max(run.at.scale, run.scale_floor)
         return tolerance, enough
 
-    def _projects(self, run: _NewtonRun) -> bool:
+    def _projects(self, run: NewtonRun) -> bool:
         """Whether this iteration starts from the projected (PSD) element tangent.
 
         As the integrator: projected far from the solution, exact near it (projection costs
@@ -416,12 +341,12 @@ class RobustSteps(ContactResponses, ContactTangent):
 
     def _linearised_free_step(
         self,
-        run: _NewtonRun,
+        run: NewtonRun,
         project: bool,
         start_forces: NDArray[np.float64],
         tolerance: float,
         enough: float,
-    ) -> _FreeStep:
+    ) -> FreeStep:
         """The iteration's Newton system and its free step (the last forces as a load where a
         factorisation is kept).
 
@@ -445,7 +370,7 @@ class RobustSteps(ContactResponses, ContactTangent):
                 )
             else:
                 factorization, indefinite = self.sim.integrator.solver.factorize(system)
-                free = _FreeStep(system, augmented, project, indefinite)
+                free = FreeStep(system, augmented, project, indefinite)
                 free.factorization = factorization
             if project or not free.indefinite:
                 break
@@ -459,7 +384,7 @@ class RobustSteps(ContactResponses, ContactTangent):
 
     def _newton_system(
         self,
-        run: _NewtonRun,
+        run: NewtonRun,
         project: bool,
         stiffness: float | None,
         start_forces: NDArray[np.float64],
@@ -483,7 +408,7 @@ class RobustSteps(ContactResponses, ContactTangent):
 
     def _kept_free_step(
         self,
-        run: _NewtonRun,
+        run: NewtonRun,
         system: ConstrainedSystem,
         augmented: tuple[NDArray[np.bool_], float] | None,
         project: bool,
@@ -491,7 +416,7 @@ class RobustSteps(ContactResponses, ContactTangent):
         start_forces: NDArray[np.float64],
         tolerance: float,
         enough: float,
-    ) -> _FreeStep:
+    ) -> FreeStep:
         """The free step with the kept factorisation, refreshed for a new kind of tangent:
         W~ = H F^-1 H^T of a projected F misses the exact compliance by more than the contact
         tolerance can see near convergence. (Quasi-static steps turn exact within a step;
@@ -507,10 +432,10 @@ class RobustSteps(ContactResponses, ContactTangent):
         )
         fresh = report.factorized or refreshed
         indefinite = report.indefinite or (refreshed and solver.kept_indefinite)
-        return _FreeStep(system, augmented, project, indefinite, free_step, None, fresh, accuracy)
+        return FreeStep(system, augmented, project, indefinite, free_step, None, fresh, accuracy)
 
     def _responded_step(
-        self, run: _NewtonRun, free: _FreeStep, start_forces: NDArray[np.float64]
+        self, run: NewtonRun, free: FreeStep, start_forces: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The contact response to the free step: (forces [N] of the true linearisation, one
         per contact of ``run.at``; the whole step (3N,) [m]).
@@ -569,11 +494,11 @@ class RobustSteps(ContactResponses, ContactTangent):
 
     def _next_iterate(
         self,
-        run: _NewtonRun,
+        run: NewtonRun,
         y: NDArray[np.float64],
         evaluated: tuple[float, NDArray[np.float64], float],
         forces: NDArray[np.float64],
-    ) -> _Iterate:
+    ) -> Iterate:
         """The iterate at ``y`` (evaluated there): contacts re-detected, the ``forces`` [N]
         (one per contact of ``run.at``) carried over to them by surface point, the KKT
         residual and the penetration."""
@@ -594,9 +519,9 @@ class RobustSteps(ContactResponses, ContactTangent):
         # scale ~ 0, and its round-off gradient must not read as a large relative residual.
         residual = vector_norm(kkt[run.free]) / max(scale, run.scale_floor)
         penetration = float(max(0.0, -(contacts.distance.min() if contacts.count else 0.0)))
-        return _Iterate(y, energy, gradient, scale, contacts, rows, forces, residual, penetration)
+        return Iterate(y, energy, gradient, scale, contacts, rows, forces, residual, penetration)
 
-    def _converged(self, run: _NewtonRun) -> bool:
+    def _converged(self, run: NewtonRun) -> bool:
         """Whether the step ends at ``run.at`` (setting ``run.status``): converged when the
         KKT residual is below the Newton tolerance and no point penetrates beyond the
         contact tolerance; ended when the penetration stalls (see
@@ -616,7 +541,7 @@ class RobustSteps(ContactResponses, ContactTangent):
 
     # ------------------------------------------------------------------ the end
 
-    def _end_robust_step(self, run: _NewtonRun, start: float):
+    def _end_robust_step(self, run: NewtonRun, start: float):
         """Commit the step's end (``run.at``) and report it; a step that diverged or whose
         solver failed commits nothing and drops the kept factorisation."""
         sim = self.sim
@@ -674,7 +599,7 @@ class RobustSteps(ContactResponses, ContactTangent):
         }
         return status, points, on_probe, diagnostics
 
-    def _static_residual(self, run: _NewtonRun) -> float:
+    def _static_residual(self, run: NewtonRun) -> float:
         """The KKT residual of the step's end; for a relaxation step, how far the relaxed
         state is from static equilibrium (no inertia)."""
         if run.relax_s <= 0.0:
