@@ -50,6 +50,19 @@ def _names(text: str | None, parse: Callable[[str], object] | None = None) -> li
     return names
 
 
+def _methods_and_profiles(
+    parser: argparse.ArgumentParser, methods: str | None, profiles: str | None
+) -> tuple[list[str] | None, list[str]]:
+    """A benchmark's ``--contact`` (None: all) and ``--profile`` (one or more) options,
+    checked."""
+    from tissue.contact import contact_method
+
+    chosen = _names(profiles, Profile.parse)
+    if not chosen:
+        parser.error("--profile needs one or more of paper,robust; got nothing")
+    return _names(methods, contact_method), chosen
+
+
 def _pair(value: str) -> tuple[float, float]:
     numbers = _floats(value)
     if len(numbers) != 2:
@@ -334,22 +347,14 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         return 0
     if args.command == "bench" and args.bench == "contact":
         from agents.bench.contact import run_contact_benchmark
-        from tissue.contact import contact_method
 
-        methods = _names(args.methods, contact_method)
-        modes = _names(args.modes, Profile.parse)
-        if not modes:
-            parser.error("--profile needs one or more of paper,robust; got nothing")
+        methods, modes = _methods_and_profiles(parser, args.methods, args.modes)
         run_contact_benchmark(args.levels, methods, modes, args.json, command=args.command_line)
         return 0
     if args.command == "bench" and args.bench == "env":
         from agents.bench.env import run_env_benchmark
-        from tissue.contact import contact_method
 
-        methods = _names(args.methods, contact_method)
-        profiles = _names(args.profiles, Profile.parse)
-        if not profiles:
-            parser.error("--profile needs one or more of paper,robust; got nothing")
+        methods, profiles = _methods_and_profiles(parser, args.methods, args.profiles)
         run_env_benchmark(
             _names(args.ids), methods, profiles, args.levels, args.json, command=args.command_line
         )

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from agents.outputs import readable
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def code_revision() -> str:

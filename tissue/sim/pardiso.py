@@ -173,6 +173,11 @@ class PardisoInstance:
         the forward / backward substitution alone (Pardiso's solve phases)."""
         b = np.asfortranarray(rhs, dtype=self.dtype)
         nrhs = 1 if b.ndim == 1 else b.shape[1]
+        return np.ascontiguousarray(self._call(phase, b, nrhs), dtype=np.float64)
+
+    def _call(self, phase: int, b: NDArray[Any], nrhs: int) -> NDArray[Any]:
+        """Run Pardiso's ``phase`` on the right-hand sides ``b`` (Fortran order); the
+        solution array (Fortran order, as ``b``)."""
         x = np.empty_like(b, order="F")
         _pardiso_call(
             self._function,
@@ -188,24 +193,7 @@ class PardisoInstance:
             x,
             nrhs,
         )
-        return np.ascontiguousarray(x, dtype=np.float64)
-
-    def _call(self, phase: int, b: NDArray[np.floating], nrhs: int) -> None:
-        x = np.empty_like(b)
-        _pardiso_call(
-            self._function,
-            self._pt,
-            self._iparm,
-            self.mtype,
-            phase,
-            self.n,
-            self.data,
-            self.indptr,
-            self.indices,
-            b,
-            x,
-            nrhs,
-        )
+        return x
 
 
 class PardisoFactorization:
