@@ -126,3 +126,26 @@ def test_bench_env_reports_steps_per_second_and_where_the_time_goes(tmp_path: Pa
     assert all(record[part] > 0.0 for part in parts)
     assert sum(record[part] for part in parts) <= record["step_wall_ms"] * 1.05
     assert record["steps_per_s"] > 0.0 and record["reset_ms"] > 0.0
+
+
+def test_contact_targets_reach_its_markdown() -> None:
+    """Every target a contact record carries becomes a row of the published table, with its
+    verdict; records without one add none."""
+    from agents.bench.contact import _annotate_targets, markdown_tables, target_rows
+
+    def record(method: str, mode: str, step_ms: float) -> dict:
+        return {"method": method, "mode": mode, "level": 4126, "tets": 4141,
+                "step_ms": step_ms, "step_ms_max": step_ms, "force_n": 1.0,
+                "penetration_max_m": 0.0, "lesion1_displacement_m": 0.007,
+                "status_counts": {"ok": 50}, "stopped_by_wall_budget": False}  # fmt: skip
+
+    records = [record("penalty", "paper", 4.0), record("lm", "paper", 9.0)]
+    _annotate_targets(records)
+    rows = target_rows(records)
+    assert ["paper step", "penalty/paper", "4,141", "4.00 ms", "<= 5 ms", "met"] in rows
+    assert ["LM / penalty", "lm/paper", "4,141", "2.25 x", "<= 2 x", "MISSED"] in rows
+    tables = markdown_tables(records, [4126])
+    assert tables[-1].caption == "speed targets" and len(tables[-1].rows) == len(rows)
+    untargeted = [record("pbd", "paper", 1.0)]
+    _annotate_targets(untargeted)
+    assert target_rows(untargeted) == []
