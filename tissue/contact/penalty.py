@@ -23,37 +23,11 @@ over to the next step, so a steady press needs about one solve per step. The pen
 then falls to the tolerance without raising k_s, which keeps the system as well conditioned
 as the default k_s makes it (the paper's stability problem with stiff penalties).
 
-Each augmentation round restarts Newton from the step's start. Tried and left: starting
-it where the last round ended (only the offsets changed). On study cells it cut the
-factorisations (4,126 tets, lesion 8: 88 -> 49) and moved two deep presses onto the
-equilibrium LM reaches at 30 mm (4,126 tets, lesion 8: 6.34 -> 5.75 N, LM 5.79 N; 2,539,
-lesion 2: 7.64 -> 8.28 N, LM 8.26 N; the other 18 cells at those levels within 0.14 N), but
-on the published scene's level-4 poses (the slow hard case) a landmark then jumped 1.39 mm
-in one step (step 165; the probe moved 0.2 mm): a round started from the last round's end
-can leave the basin the step's own dynamics would keep it in.
-
-Robust steps converge only linearly where the probe's rounded rim presses hard, most likely
-because the springs' tangent freezes the normal, leaving out the exact tangent's -m d2g/dx2
-(m the point's force, g the signed distance; LM's quasi-static steps carry that term).
-Measured before the extrapolating line search (below), on the study's 176,506-tet cell,
-lesion 8, at 29-30 mm (4.5-4.8 N), every iteration with the exact elastic tangent and nearly
-all with full steps: residuals contracted by ~0.66 per iteration in the steps that converged
-(12-17 iterations, 7-8 s); in the four slowest (20-79 s) the whole step failed its 30
-iterations (contracting by 0.8-0.9, in the worst rising for a while) and its halves then
-converged in 10-19; the worst took 144 iterations over two augmentation rounds and 9
-refactorisations. The 24 steps over 5 s were 37 % of the cell's 886 s (loaded machine).
-Tried and left: adding the term in robust mode. On the 4,126-tet cells it cut the most
-Newton iterations in a step (lesion 8: 12 -> 10; lesion 3: 19 -> 9; 12,861 tets, lesion 8:
-9 -> 7) but made steps fail and subdivide (2, 4 and 1 times, the slowest step 0.2-0.3 -> 1.5 /
-2.4 / 4.3 s), and on lesion 8 at 4,126 tets the press settled elsewhere at 30 mm (6.34 ->
-5.75 N, the lesion 2 mm away): the turning force destabilises the tissue's slide round the
-rim, as the exact tangent's full steps did for LM's dynamic steps.
-What helps instead is the integrator's extrapolating line search (a full step whose
-directional derivative is still below half the initial one tries the secant step, up to 4 x;
-``tissue.sim.integrator.line_search``): that cell's steps 639-645 took 145 s instead of 206 s
-(all its steps 730 s instead of 886 s, 22 over 5 s), one of them split (643: 99 s, five
-augmentation rounds, each solve restarting from the step's start) where four were; steps
-where it does not act are bit-identical.
+Each augmentation round restarts Newton from the step's start, and the springs' tangent
+freezes the contact normal (the exact tangent's -m d2g/dx2 term is left out), so robust
+steps converge only linearly where the probe's rounded rim presses hard; the integrator's
+extrapolating line search (:mod:`tissue.sim.integrator.line_search`) recovers most of the
+lost speed. Why neither alternative was kept is in ``docs/design-decisions.md``.
 
 Limitations: the constraint is only approximately satisfied (penetration ~ force / k_s);
 a large k_s worsens the conditioning of the system (the paper's stability problem on fine
