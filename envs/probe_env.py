@@ -13,9 +13,11 @@ phantom level or a mesh file, see ``tissue.TissueSpec``), ``young_pa``, ``poisso
 ``stiffness_n_per_m`` (the probe impedance's translational stiffness), ``render_mode``
 (rgb_array | human), ``camera_name`` (overview | probe_side), ``width``, ``height``,
 ``robot`` (an MJCF arm) and ``flange_site``, ``robot_base_m`` (where its base stands),
-``robot_dt``, ``reaction`` (False: one-way
-coupling), ``max_translation_m`` and ``max_rotation_rad`` (the action's scale), and the
-imaging geometry ``aperture_m``, ``imaging_depth_m``, ``slice_thickness_m``.
+``robot_dt``, ``reaction`` (False: one-way coupling), ``max_translation_m`` and
+``max_rotation_rad`` (the action's scale), the imaging geometry ``aperture_m``,
+``imaging_depth_m``, ``slice_thickness_m``, and ``image`` (True, or an
+:class:`envs.ultrasound.BModeConfig`: observe a B-mode image of the slice under the probe;
+off by default, and then never computed).
 """
 
 from __future__ import annotations
@@ -40,9 +42,10 @@ from envs.controller import (
 )
 from envs.coupling import TissueCoupling
 from envs.errors import EnvConfigError
-from envs.observations import ImagingConfig, sensed_wrench
+from envs.observations import TOUCH_FORCE_N, ImagingConfig, sensed_wrench
 from envs.rendering import CAMERAS, SceneRenderer
 from envs.scene import SceneConfig, build_scene, scene_names
+from envs.ultrasound import BModeConfig, BModeImager
 
 #: A seed configuration of the default arm for the probe over the phantom, pointing down;
 #: each reset solves IK from it.
@@ -88,7 +91,7 @@ def _split_kwargs(
     return routed, rest
 
 
-class ProbeEnv(gym.Env[dict[str, NDArray[np.float32]], NDArray[np.float32]]):
+class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
     """The coupled arm, probe and breast; tasks subclass it (see the module docstring)."""
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 50}  # noqa: RUF012
@@ -114,6 +117,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[np.float32]], NDArray[np.float32]]):
         robot_base_m: tuple[float, float, float] | None = None,
         robot_dt: float = 0.002,
         reaction: bool = True,
+        image: bool | BModeConfig = False,
         **kwargs: Any,
     ) -> None:
         configs = {
@@ -142,6 +146,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[np.float32]], NDArray[np.float32]]):
                     "robot_base_m",
                     "robot_dt",
                     "reaction",
+                    "image",
                 }  # fmt: skip
                 | {f.name for config in configs.values() for f in fields(config)}
             )
@@ -196,6 +201,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[np.float32]], NDArray[np.float32]]):
             )
         else:
             self.controller = JointImpedance(self.model, self.names, self.controller_config)
+        self.imager = self._make_imager(image)
         self._home = self._solve_home()
         self.render_mode = render_mode
         self.camera_name = camera_name
@@ -211,10 +217,28 @@ class ProbeEnv(gym.Env[dict[str, NDArray[np.float32]], NDArray[np.float32]]):
 
     # ------------------------------------------------------------------ spaces
 
+    def _make_imager(self, image: bool | BModeConfig) -> BModeImager | None:
+        """The B-mode imager ``image`` asks for (None: no image, never computed)."""
+        if image is False:
+            return None
+        if image is True:
+            image = BModeConfig(
+                aperture_m=self.imaging.aperture_m, imaging_depth_m=self.imaging.imaging_depth_m
+            )
+        if not isinstance(image, BModeConfig):
+            raise EnvConfigError(
+                f"image must be True, False or an envs.ultrasound.BModeConfig; got {image!r}"
+            )
+        return BModeImager(self.tissue, image)
+
     def _observation_spaces(self) -> dict[str, spaces.Space]:
         """The common observation terms; tasks add theirs."""
         n = self.joint_count
-        return {
+        image: dict[str, spaces.Space] = {}
+        if self.imager is not None:
+            shape = (self.imager.config.rows, self.imager.config.cols, 1)
+            image["image"] = spaces.Box(0, 255, shape=shape, dtype=np.uint8)
+        return image | {
             "probe_pose": spaces.Box(
                 np.array([-2.0] * 3 + [-1.0] * 4, dtype=np.float32),
                 np.array([2.0] * 3 + [1.0] * 4, dtype=np.float32),
@@ -341,7 +365,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[np.float32]], NDArray[np.float32]]):
 
     # ------------------------------------------------------------------ observations
 
-    def _common_observation(self) -> dict[str, NDArray[np.float32]]:
+    def _common_observation(self) -> dict[str, NDArray[Any]]:
         site = self.names.probe_site
         quat = np.empty(4)
         mujoco.mju_mat2Quat(quat, self.data.site_xmat[site])
@@ -355,7 +379,18 @@ class ProbeEnv(gym.Env[dict[str, NDArray[np.float32]], NDArray[np.float32]]):
             "joint_vel": np.clip(
                 self.data.qvel[self.names.joint_dof], -JOINT_VELOCITY_LIMIT, JOINT_VELOCITY_LIMIT
             ).astype(np.float32),
-        }
+        } | self._image_observation(quat)
+
+    def _image_observation(self, quat: NDArray[np.float64]) -> dict[str, NDArray[np.uint8]]:
+        """The B-mode image of the slice under the probe, (rows, cols, 1), where asked for:
+        the tissue as it is now, seen from the probe's pose, black without contact."""
+        if self.imager is None:
+            return {}
+        step = self.coupling.last_step
+        force = 0.0 if step is None else float(np.linalg.norm(step.force_world_n))
+        position = self.data.site_xpos[self.names.probe_site]
+        frame = self.imager.image(self.tissue, position, quat, force > TOUCH_FORCE_N)
+        return {"image": frame[:, :, None]}
 
     def sensed_wrench(self) -> NDArray[np.float64]:
         """The F/T sensor's wrench in the probe frame (see

@@ -13,6 +13,8 @@ first), no rendering, one process. Per record:
   coupling's wrench, the controller's torques, the tissue's step with its wrench stiffness,
   the observation and reward;
 - ``reset_ms``: the median wall time of five resets after the first.
+- ``image_ms``: the median time of a 128 x 128 B-mode frame (``image=True``) at the run's
+  last state, timed apart from the steps (the steps per second are without the image).
 
 Targets (robust profile, probe in contact): at least 300
 steps/s for prescribed and penalty and 250 for LM at level 1363, 200 for the three at level
@@ -27,6 +29,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import mujoco
 import numpy as np
 
 from agents.bench.contact import threading_environment
@@ -46,6 +49,8 @@ TARGET_STEPS_PER_S = {
     "lm": {1363: 250.0, 2539: 200.0},
 }
 TARGET_RESET_MS = 5.0
+#: Frames timed for the image column.
+IMAGE_REPEATS = 20
 
 
 def benchmark_env(env_id: str, contact: str, profile: str, level: int) -> dict[str, Any]:
@@ -77,6 +82,7 @@ def benchmark_env(env_id: str, contact: str, profile: str, level: int) -> dict[s
         statuses.append(info.get("tissue", {}).get("status"))
         if terminated or truncated:
             break
+    image_ms = _image_ms(unwrapped)
     env.close()
     median = {key: float(np.median([p[key] for p in parts])) * 1e3 for key in parts[0]}
     cpu_ms = float(np.median(cpu)) * 1e3
@@ -94,6 +100,7 @@ def benchmark_env(env_id: str, contact: str, profile: str, level: int) -> dict[s
         "controller_ms": median["controller_s"],
         "tissue_ms": median["tissue_s"],
         "observation_ms": median["observation_s"],
+        "image_ms": image_ms,
         "reset_ms": float(np.median(resets)) * 1e3,
         "statuses": {status: statuses.count(status) for status in set(statuses)},
         "load_average": list(os.getloadavg()),
@@ -104,6 +111,28 @@ def benchmark_env(env_id: str, contact: str, profile: str, level: int) -> dict[s
         record["meets_target"] = record["steps_per_s"] >= target
     record["meets_reset_target"] = record["reset_ms"] <= TARGET_RESET_MS
     return record
+
+
+def _image_ms(env: Any) -> float:
+    """Median time of a B-mode frame (``image=True``'s observation, 128 x 128) [ms], at the
+    run's last state: measured beside the steps, which are timed without it."""
+    from envs.ultrasound import BModeConfig, BModeImager
+
+    imaging = env.imaging
+    imager = BModeImager(
+        env.tissue,
+        BModeConfig(aperture_m=imaging.aperture_m, imaging_depth_m=imaging.imaging_depth_m),
+    )
+    position, rotation = env.probe_pose()
+    quat = np.empty(4)
+    mujoco.mju_mat2Quat(quat, rotation.reshape(-1))
+    imager.image(env.tissue, position, quat, True)  # compiled kernels loaded, buffers made
+    times = []
+    for _ in range(IMAGE_REPEATS):
+        tic = time.perf_counter()
+        imager.image(env.tissue, position, quat, True)
+        times.append(time.perf_counter() - tic)
+    return float(np.median(times)) * 1e3
 
 
 def run_env_benchmark(
@@ -135,7 +164,7 @@ def _table(records: list[dict[str, Any]]) -> MarkdownTable:
     table = MarkdownTable(
         "env steps per second (median, from CPU time) and a step's parts [ms]",
         ["env", "contact", "profile", "level (tets)", "steps/s", "target", "tissue",
-         "controller", "robot", "observation", "reset"],
+         "controller", "robot", "observation", "reset", "image (ms a frame)"],
     )  # fmt: skip
     for r in records:
         target = r.get("target_steps_per_s")
@@ -146,7 +175,7 @@ def _table(records: list[dict[str, Any]]) -> MarkdownTable:
             r["env_id"], r["contact"], r["profile"], f"{r['level']} ({r['tets']:,})",
             f"{r['steps_per_s']:.0f}", verdict, f"{r['tissue_ms']:.2f}",
             f"{r['controller_ms']:.2f}", f"{r['robot_ms']:.2f}", f"{r['observation_ms']:.2f}",
-            f"{r['reset_ms']:.2f}",
+            f"{r['reset_ms']:.2f}", f"{r['image_ms']:.2f}",
         ])  # fmt: skip
     return table
 
@@ -160,7 +189,7 @@ def _print(record: dict[str, Any]) -> None:
         f"(cpu {record['step_cpu_ms']:.2f} ms, wall {record['step_wall_ms']:.2f} ms; robot "
         f"{record['robot_ms']:.2f}, controller {record['controller_ms']:.2f}, tissue "
         f"{record['tissue_ms']:.2f}, observation {record['observation_ms']:.2f} ms), reset "
-        f"{record['reset_ms']:.2f} ms"
+        f"{record['reset_ms']:.2f} ms, image {record['image_ms']:.2f} ms a frame"
         + ("" if target is None else f"; target {target:.0f}{verdict}"),
         flush=True,
     )

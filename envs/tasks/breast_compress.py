@@ -124,7 +124,7 @@ class BreastCompressEnv(ProbeEnv):
 
     ## Observation space
 
-    ``Dict`` of float32 boxes (flattenable):
+    ``Dict`` of float32 boxes (flattenable), and with ``image=True`` a uint8 image:
 
     | key | shape | meaning |
     | --- | --- | --- |
@@ -133,8 +133,12 @@ class BreastCompressEnv(ProbeEnv):
     | ``joint_pos``, ``joint_vel`` | (6,) | the arm's joints [rad], [rad/s] |
     | ``lesion`` | (4,) | target lesion in the image: lateral, depth, out-of-plane [m], visible |
     | ``target_depth`` | (1,) | the depth to bring it to [m] |
+    | ``image`` | (128, 128, 1) | with ``image=True``: B-mode image, uint8 (envs.ultrasound) |
 
-    The phantom frame has its origin at the centre of the phantom's base, on the table; the
+    The image (off by default, and then never computed) is the deformed slice under the
+    probe, row 0 at the face, black without contact; a ``BModeConfig`` instead of True sets
+    its size and acoustics. The phantom frame has its origin at the centre of the phantom's
+    base, on the table; the
     quaternion is the one with w >= 0; the wrench is the sensor's, negated, with the probe's
     own weight tared. The lesion is zeros when it is not visible.
 
@@ -190,6 +194,7 @@ class BreastCompressEnv(ProbeEnv):
         "joint_vel": (),
         "lesion": ("deformation", "lesion_tracking"),
         "target_depth": (),
+        "image": ("deformation", "image"),
         "depth_error": ("deformation", "lesion_tracking"),
         "centring": ("deformation", "lesion_tracking"),
         "force": ("force_feedback",),
@@ -254,7 +259,7 @@ class BreastCompressEnv(ProbeEnv):
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[dict[str, NDArray[np.float32]], dict[str, Any]]:
+    ) -> tuple[dict[str, NDArray[Any]], dict[str, Any]]:
         super().reset(seed=seed)
         rng = self.np_random
         cfg = self.task_config
@@ -283,7 +288,7 @@ class BreastCompressEnv(ProbeEnv):
 
     def step(
         self, action: Any
-    ) -> tuple[dict[str, NDArray[np.float32]], float, bool, bool, dict[str, Any]]:
+    ) -> tuple[dict[str, NDArray[Any]], float, bool, bool, dict[str, Any]]:
         values = self._check_action(action)
         step = self._advance(values)
         observed_from = time.perf_counter()
@@ -369,7 +374,7 @@ class BreastCompressEnv(ProbeEnv):
             return int(spec.max_episode_steps)
         return MAX_EPISODE_STEPS
 
-    def _observation(self) -> dict[str, NDArray[np.float32]]:
+    def _observation(self) -> dict[str, NDArray[Any]]:
         observed = self._common_observation()
         lesion = self._lesion_now
         observed["lesion"] = (
