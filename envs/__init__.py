@@ -11,6 +11,7 @@ Importing this package registers the environments::
 | id | task |
 | --- | --- |
 | ``probegym/BreastCompress-v0`` | compress the breast until a lesion reaches a depth in the image |
+| ``probegym/LesionSearch-v0`` | find a lesion, centre it in the image, hold the force in a band |
 """
 
 from __future__ import annotations
@@ -18,8 +19,9 @@ from __future__ import annotations
 import gymnasium as gym
 
 from envs.tasks.breast_compress import MAX_EPISODE_STEPS as _COMPRESS_STEPS
+from envs.tasks.lesion_search import MAX_EPISODE_STEPS as _SEARCH_STEPS
 
-ENV_IDS = ("probegym/BreastCompress-v0",)
+ENV_IDS = ("probegym/BreastCompress-v0", "probegym/LesionSearch-v0")
 
 
 def _register() -> None:
@@ -28,6 +30,12 @@ def _register() -> None:
             id="probegym/BreastCompress-v0",
             entry_point="envs.tasks.breast_compress:BreastCompressEnv",
             max_episode_steps=_COMPRESS_STEPS,
+        )
+    if "probegym/LesionSearch-v0" not in gym.registry:
+        gym.register(
+            id="probegym/LesionSearch-v0",
+            entry_point="envs.tasks.lesion_search:LesionSearchEnv",
+            max_episode_steps=_SEARCH_STEPS,
         )
 
 

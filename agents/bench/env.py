@@ -36,7 +36,6 @@ from agents.bench.contact import threading_environment
 from agents.bench.report import BenchRecord, MarkdownTable, code_revision
 from agents.outputs import write_json
 
-DEFAULT_IDS = ("probegym/BreastCompress-v0",)
 DEFAULT_METHODS = ("lm", "penalty", "prescribed", "pbd")
 DEFAULT_PROFILES = ("robust",)
 DEFAULT_LEVELS = (1363, 2539)
@@ -147,7 +146,9 @@ def run_env_benchmark(
     records: list[dict[str, Any]] = []
     started = time.strftime("%Y-%m-%dT%H:%M:%S")
     provenance = BenchRecord("probegym bench env: environment steps per second", command)
-    for env_id in env_ids or DEFAULT_IDS:
+    import envs
+
+    for env_id in env_ids or envs.ENV_IDS:
         for profile in profiles or DEFAULT_PROFILES:
             for level in levels or DEFAULT_LEVELS:
                 for contact in methods or DEFAULT_METHODS:

@@ -2,5 +2,6 @@
 demonstrations)."""
 
 from agents.policies.compression import CompressionPolicy
+from agents.policies.lesion_search import LesionSearchPolicy
 
-__all__ = ["CompressionPolicy"]
+__all__ = ["CompressionPolicy", "LesionSearchPolicy"]

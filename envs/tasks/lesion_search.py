@@ -1,0 +1,470 @@
+"""``probegym/LesionSearch-v0``: find a lesion, centre it in the image and hold contact."""
+
+from __future__ import annotations
+
+import math
+import numbers
+import time
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+from gymnasium import spaces
+from numpy.typing import NDArray
+
+import tissue
+from envs.errors import EnvConfigError
+from envs.observations import LesionInImage, lesion_in_image
+from envs.probe_env import ProbeEnv, rotation_angle
+from envs.tasks.breast_compress import PHANTOM_TARGET_LESIONS, _matrix, _turn
+
+#: The registered episode length [steps] (6 s at 20 ms).
+MAX_EPISODE_STEPS = 300
+#: Bound of the ``lesion`` observation's lengths [m].
+LESION_BOUND_M = 0.1
+
+
+@dataclass(frozen=True)
+class LesionSearchConfig:
+    """LesionSearch's settings (keyword arguments of ``gymnasium.make``).
+
+    Attributes:
+        target_lesions: lesion numbers drawn from at reset; None: on the built-in phantom
+            :data:`envs.tasks.breast_compress.PHANTOM_TARGET_LESIONS` (those under gently
+            sloped skin), elsewhere every lesion 10 mm to the imaging depth less 5 mm under
+            the skin.
+        start_offset_range_m: the start's distance from the lesion along the probe's x axis
+            (the image's lateral axis), drawn uniformly, with a random sign [m]; the default
+            puts the lesion beyond half the 40 mm aperture, out of the image.
+        start_tilt_rad: the start's tilt noise, uniform in +- this about each in-plane axis.
+        centre_tolerance_m: success band of the lesion's lateral offset from the image's
+            centre line [m].
+        force_band_n: (low, high) success band of the normal contact force [N].
+        hold_steps: steps the lesion must stay centred, in view, the force in band.
+        hard_force_n: contact force that ends the episode as a failure [N].
+        workspace_m: how far the probe's target may go from the start sideways [m].
+        max_press_m: and into the tissue, along the start's pressing direction [m].
+        max_lift_m: and away from it [m].
+        max_turn_rad: how far the target may turn from the start's orientation [rad].
+    """
+
+    target_lesions: tuple[int, ...] | None = None
+    start_offset_range_m: tuple[float, float] = (0.024, 0.030)
+    start_tilt_rad: float = math.radians(2.0)
+    centre_tolerance_m: float = 0.003
+    force_band_n: tuple[float, float] = (0.5, 4.0)
+    hold_steps: int = 15
+    hard_force_n: float = 10.0
+    workspace_m: float = 0.04
+    max_press_m: float = 0.035
+    max_lift_m: float = 0.02
+    max_turn_rad: float = math.radians(30.0)
+
+    def __post_init__(self) -> None:
+        for name in (
+            "centre_tolerance_m",
+            "hard_force_n",
+            "workspace_m",
+            "max_press_m",
+            "max_lift_m",
+            "max_turn_rad",
+        ):
+            value = getattr(self, name)
+            if not (_is_number(value) and value > 0):
+                raise EnvConfigError(f"{name} must be a positive number; got {value!r}")
+        if not (_is_number(self.start_tilt_rad) and self.start_tilt_rad >= 0):
+            raise EnvConfigError(f"start_tilt_rad must be >= 0; got {self.start_tilt_rad!r}")
+        offsets = _pair(self.start_offset_range_m)
+        if offsets is None or not (0.0 <= offsets[0] <= offsets[1] <= self.workspace_m):
+            raise EnvConfigError(
+                f"start_offset_range_m must be (low, high) with 0 <= low <= high <= "
+                f"workspace_m ({self.workspace_m!r} m); got {self.start_offset_range_m!r}"
+            )
+        band = _pair(self.force_band_n)
+        if band is None or not (0.0 <= band[0] < band[1] < self.hard_force_n):
+            raise EnvConfigError(
+                f"force_band_n must be (low, high) with 0 <= low < high < hard_force_n "
+                f"({self.hard_force_n!r} N); got {self.force_band_n!r}"
+            )
+        if isinstance(self.hold_steps, bool) or not (
+            isinstance(self.hold_steps, numbers.Integral) and self.hold_steps >= 1
+        ):
+            raise EnvConfigError(f"hold_steps must be a whole number >= 1; got {self.hold_steps!r}")
+
+
+def _is_number(value: Any) -> bool:
+    return (
+        isinstance(value, numbers.Real)
+        and not isinstance(value, bool)
+        and bool(np.isfinite(float(value)))
+    )
+
+
+def _pair(value: Any) -> tuple[float, float] | None:
+    """Two finite numbers, or None."""
+    if not isinstance(value, (tuple, list)) or len(value) != 2:
+        return None
+    if not all(_is_number(v) for v in value):
+        return None
+    return float(value[0]), float(value[1])
+
+
+class LesionSearchEnv(ProbeEnv):
+    """Find the target lesion with the robot-held probe, centre it in the image and hold
+    the contact force in a band.
+
+    ## Description
+
+    A UR5e-like arm holds a linear ultrasound probe on a hyperelastic finite-element breast
+    phantom with stiff lesions (Tagliabue et al. 2020); the tissue's reaction comes back to
+    the robot (two-way coupling). The probe starts just touching the skin beside the target
+    lesion, displaced 24-30 mm along the image's lateral axis, either way: beyond half the
+    40 mm aperture, so the lesion is out of the image (and nothing is seen before the probe
+    presses: no contact, no image). The policy must press to get an image, search for the
+    lesion as a sonographer does, sweeping along the scan line until it appears, bring it
+    to the image's centre line and hold it there with an adequate, safe contact force. A
+    ``start_offset_range_m`` under half the aperture (say 10-20 mm) makes the easier task
+    where the lesion shows at the first press.
+
+    The policy sees only what a sonographer sees: the lesion in the image (or nothing), the
+    force and its own pose. It is not told where the lesion is or on which side; it is
+    told, here, that the start is displaced along the probe's x axis (the scan line), so
+    sweeping along x, one way and then back, finds it
+    (:class:`agents.policies.LesionSearchPolicy` does; the frictionless tissue is dragged
+    along by a deep press, so it sweeps lightly and keeps the face on the skin's slope).
+
+    ## Action space
+
+    ``Box(-1, 1, (6,), float32)``, in the probe frame (x: the image's lateral axis, y: into
+    the tissue, z: elevation); values beyond the box are clipped, NaN or inf raise:
+
+    | index | meaning | at +1 |
+    | --- | --- | --- |
+    | 0, 1, 2 | move the probe's target along x, y, z | 5 mm per step |
+    | 3, 4, 5 | turn it about x, y, z | 0.05 rad per step |
+
+    (``max_translation_m``, ``max_rotation_rad``). A Cartesian impedance controller (3000
+    N/m, 60 N m/rad, critically damped, gravity compensated) tracks the target at 500 Hz;
+    the target stays within 40 mm sideways, 35 mm in and 20 mm out of the start pose and 30
+    degrees of its orientation. ``control_mode="joint_delta"``: the action moves the joint
+    targets by up to 0.05 rad per step.
+
+    ## Observation space
+
+    ``Dict`` of float32 boxes (flattenable):
+
+    | key | shape | meaning |
+    | --- | --- | --- |
+    | ``probe_pose`` | (7,) | probe position [m] (phantom frame) and quaternion (w, x, y, z) |
+    | ``wrench`` | (6,) | F/T force [N], torque [N m] about the face centre, probe frame |
+    | ``joint_pos``, ``joint_vel`` | (6,) | the arm's joints [rad], [rad/s] |
+    | ``lesion`` | (4,) | target lesion in the image: lateral, depth, out-of-plane [m], visible |
+
+    The phantom frame has its origin at the centre of the phantom's base, on the table; the
+    quaternion is the one with w >= 0; the wrench is the sensor's, negated, with the probe's
+    own weight tared, so pressing into the tissue reads a negative ``wrench[1]`` (the
+    normal contact force is ``-wrench[1]``). The lesion is zeros when it is not visible.
+
+    Visible: the probe touches the skin, the lesion lies within the 40 mm aperture and 50 mm
+    of depth, and within its radius plus 1 mm of the 2 mm slice.
+
+    ## Rewards
+
+    Named terms, logged already weighted in ``info["reward_terms"]`` (the reward is their
+    sum): ``centring`` (-0.5 x |lateral| / 20 mm, capped; -0.5 out of view), ``force``
+    (-0.3 x the normal force's distance from the 0.5-4 N band, as a share of the band's
+    width, capped at 1), ``smoothness`` (-0.1 x the mean squared change of the action / 4),
+    ``success`` (+1 on the step that succeeds) and ``failure`` (-(max_episode_steps + 1) on
+    a failing last step). A step's reward lies in [-0.9, 0] but for the last, so an
+    episode ending in failure returns less than any that does not.
+
+    ## Starting state
+
+    A lesion is drawn from the target lesions; the probe just touches the skin (no
+    contact force yet), its pressing axis along the skin's inward normal above the lesion
+    tilted up to 2 degrees about each in-plane axis, its long axis down the skin's slope
+    (the radial scan plane through the lesion), displaced along that axis by 24-30 mm with
+    a random sign: the lesion lies in the image plane, that far to the side, out of the
+    image; the tissue at rest. All from the reset's seed.
+
+    ## Episode end
+
+    Terminated with success when the lesion has stayed visible, within 3 mm of the image's
+    centre line, with the normal contact force in 0.5-4 N, for 15 steps (0.3 s); as a
+    failure when the contact force exceeds 10 N (``info["force_exceeded"]``), the tissue
+    step is not ``ok`` (``info["tissue_unstable"]`` names the status) or the arm's state
+    is not finite (``info["robot_unstable"]``). Truncated at ``max_episode_steps`` (300,
+    6 s).
+
+    ## Arguments
+
+    ``gymnasium.make("probegym/LesionSearch-v0", contact="lm", profile="robust",
+    mesh=1363, ...)``: see :mod:`envs.probe_env` for the common ones and
+    :class:`LesionSearchConfig` for this task's (``start_offset_range_m``,
+    ``centre_tolerance_m``, ``force_band_n``, ``hold_steps``, ``hard_force_n``, ...).
+
+    ## Version history
+
+    - v0: first release.
+    """
+
+    task_config_type: ClassVar[type] = LesionSearchConfig
+    task_config: LesionSearchConfig
+
+    #: The simulated effects each term needs (see :data:`envs.observations.EFFECTS`).
+    TERM_EFFECTS: ClassVar[dict[str, tuple[str, ...]]] = {
+        "probe_pose": (),
+        "wrench": ("force_feedback",),
+        "joint_pos": (),
+        "joint_vel": (),
+        "lesion": ("deformation", "lesion_tracking"),
+        "image": ("deformation", "image"),
+        "centring": ("deformation", "lesion_tracking"),
+        "force": ("force_feedback",),
+        "smoothness": (),
+        "success": ("deformation", "lesion_tracking", "force_feedback"),
+        "failure": ("force_feedback",),
+    }
+    WEIGHTS: ClassVar[dict[str, float]] = {
+        "centring": 0.5,
+        "force": 0.3,
+        "smoothness": 0.1,
+    }
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self._candidates = self._target_lesions()
+        self._target = 0
+        self._start_offset = 0.0
+        self._held = 0
+        self._lesion_now: LesionInImage | None = None
+
+    def _observation_spaces(self) -> dict[str, spaces.Space]:
+        observed = super()._observation_spaces()
+        bound = LESION_BOUND_M
+        observed["lesion"] = spaces.Box(
+            np.array([-bound, -bound, -bound, 0.0], dtype=np.float32),
+            np.array([bound, bound, bound, 1.0], dtype=np.float32),
+            dtype=np.float32,
+        )
+        return observed
+
+    def _target_lesions(self) -> tuple[int, ...]:
+        lesions = self.tissue.lesions
+        wanted = self.task_config.target_lesions
+        if wanted is None:
+            if self.tissue.spec.mesh_kind() == "level":
+                wanted = PHANTOM_TARGET_LESIONS
+            else:
+                wanted = tuple(
+                    lesion.label
+                    for lesion in lesions
+                    if 0.010 <= self._rest_depth(lesion) <= self.imaging.imaging_depth_m - 0.005
+                )
+        labels = {lesion.label for lesion in lesions}
+        if not wanted or not set(wanted) <= labels:
+            raise EnvConfigError(
+                f"target_lesions must name lesions of this mesh, {sorted(labels)}; got {wanted!r}"
+            )
+        return tuple(wanted)
+
+    def _rest_depth(self, lesion: tissue.Lesion) -> float:
+        try:
+            position, quat = self.tissue.touching_pose(lesion.rest_centre_m)
+        except tissue.TissueInputError:
+            return -1.0
+        rotation = _matrix(quat)
+        return float((rotation.T @ (lesion.rest_centre_m - position))[1])
+
+    # ------------------------------------------------------------------ episode
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, NDArray[np.float32]], dict[str, Any]]:
+        super().reset(seed=seed)
+        rng = self.np_random
+        cfg = self.task_config
+        label = int(self._candidates[int(rng.integers(len(self._candidates)))])
+        self._target = label - 1
+        lesion = self.tissue.lesions[self._target]
+        _, quat = self.tissue.touching_pose(lesion.rest_centre_m)
+        rotation = _matrix(quat)
+        distance = float(rng.uniform(*cfg.start_offset_range_m))
+        sign = 1.0 if rng.integers(2) == 1 else -1.0
+        tilt = rng.uniform(-cfg.start_tilt_rad, cfg.start_tilt_rad, size=2)
+        tilted = rotation @ _turn(np.array([tilt[0], 0.0, tilt[1]]))
+        self._start_offset = sign * distance
+        aim = lesion.rest_centre_m + rotation @ np.array([self._start_offset, 0.0, 0.0])
+        position, quat = self._touching_pose(aim, tilted)
+        self.place_probe(position, _matrix(quat))
+        self._held = 0
+        self._lesion_now = self._lesion(0.0)
+        return self._observation(), self._info(None, {}, False)
+
+    def _touching_pose(
+        self, aim: NDArray[np.float64], rotation: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The pose that just touches the skin along ``rotation``'s y axis through ``aim``,
+        with ``rotation``'s x axis (the scan line along which the start is offset: the
+        tissue's default roll, down the slope at the new direction, may turn it, and near
+        the apex by much)."""
+        direction = rotation[:, 1]
+        _, quat = self.tissue.touching_pose(aim, direction, roll_rad=0.0)
+        unrolled = _matrix(quat)
+        # The roll turns x towards -z about the pressing axis: x(r) = cos r x0 - sin r z0.
+        wanted = rotation[:, 0]
+        roll = math.atan2(-float(wanted @ unrolled[:, 2]), float(wanted @ unrolled[:, 0]))
+        return self.tissue.touching_pose(aim, direction, roll_rad=roll)
+
+    def step(
+        self, action: Any
+    ) -> tuple[dict[str, NDArray[np.float32]], float, bool, bool, dict[str, Any]]:
+        values = self._check_action(action)
+        step = self._advance(values)
+        observed_from = time.perf_counter()
+        cfg = self.task_config
+        force = self.contact_force_n(step)
+        normal = self.normal_force_n(step)
+        self._lesion_now = self._lesion(force)
+        lesion = self._lesion_now
+        finite = bool(np.all(np.isfinite(self.data.qpos)) and np.all(np.isfinite(self.data.qvel)))
+        failure: dict[str, Any] = {}
+        if step.status is not tissue.StepStatus.OK:
+            failure["tissue_unstable"] = step.status.value
+        if force > cfg.hard_force_n:
+            failure["force_exceeded"] = True
+        if not finite:
+            failure["robot_unstable"] = True
+        low, high = cfg.force_band_n
+        in_band = (
+            lesion.visible
+            and abs(lesion.true_lateral_m) <= cfg.centre_tolerance_m
+            and low <= normal <= high
+        )
+        self._held = self._held + 1 if in_band and not failure else 0
+        success = self._held >= cfg.hold_steps
+        terms = self._reward_terms(values, lesion, normal, success, bool(failure))
+        reward = float(sum(terms.values()))
+        self._last_action = values
+        terminated = success or bool(failure)
+        if not finite:
+            self._make_finite()
+        observation = self._observation()
+        info = self._info(step, terms, success, failure)
+        self.last_timing["observation_s"] = time.perf_counter() - observed_from
+        return observation, reward, terminated, False, info
+
+    # ------------------------------------------------------------------ terms
+
+    def contact_force_n(self, step: tissue.TissueStep | None) -> float:
+        """The contact force's magnitude [N] (the tissue's, on the probe)."""
+        if step is None:
+            return 0.0
+        return float(np.linalg.norm(step.force_world_n))
+
+    def normal_force_n(self, step: tissue.TissueStep | None) -> float:
+        """The contact force along the probe's pressing axis [N] (positive pressing)."""
+        if step is None:
+            return 0.0
+        _, rotation = self.probe_pose()
+        return float(-step.force_world_n @ rotation[:, 1])
+
+    def _lesion(self, force: float) -> LesionInImage:
+        position, rotation = self.probe_pose()
+        lesion = self.tissue.lesions[self._target]
+        return lesion_in_image(
+            self.tissue.lesion_centroids_m()[self._target],
+            lesion.radius_m,
+            position,
+            rotation,
+            force,
+            self.imaging,
+        )
+
+    def _reward_terms(
+        self,
+        action: NDArray[np.float64],
+        lesion: LesionInImage,
+        normal: float,
+        success: bool,
+        failed: bool,
+    ) -> dict[str, float]:
+        cfg, weights = self.task_config, self.WEIGHTS
+        if lesion.visible:
+            centring = min(1.0, abs(lesion.true_lateral_m) / (0.5 * self.imaging.aperture_m))
+        else:
+            centring = 1.0
+        low, high = cfg.force_band_n
+        outside = max(0.0, low - normal, normal - high) / (high - low)
+        change = float(np.mean((action - self._last_action) ** 2)) / 4.0
+        horizon = self._horizon()
+        return {
+            "centring": -weights["centring"] * centring,
+            "force": -weights["force"] * min(1.0, outside),
+            "smoothness": -weights["smoothness"] * min(1.0, change),
+            "success": 1.0 if success else 0.0,
+            "failure": -float(horizon + 1) if failed else 0.0,
+        }
+
+    def _horizon(self) -> int:
+        spec = self.spec
+        if spec is not None and spec.max_episode_steps is not None:
+            return int(spec.max_episode_steps)
+        return MAX_EPISODE_STEPS
+
+    def _observation(self) -> dict[str, NDArray[np.float32]]:
+        observed = self._common_observation()
+        lesion = self._lesion_now
+        bound = LESION_BOUND_M
+        observed["lesion"] = (
+            np.zeros(4, dtype=np.float32)
+            if lesion is None
+            else np.clip(lesion.as_array(), -bound, 1.0).astype(np.float32)
+        )
+        return observed
+
+    def _info(
+        self,
+        step: tissue.TissueStep | None,
+        terms: dict[str, float],
+        success: bool,
+        failure: dict[str, Any] | None = None,
+    ) -> dict[str, Any]:
+        lesion = self._lesion_now
+        info: dict[str, Any] = {
+            "is_success": bool(success),
+            "reward_terms": dict(terms),
+            "contact_force_n": self.contact_force_n(step),
+            "normal_force_n": self.normal_force_n(step),
+            "target_lesion": self._target + 1,
+            "start_offset_m": float(self._start_offset),
+            "lesion_lateral_m": None if lesion is None else float(lesion.true_lateral_m),
+            "lesion_visible": False if lesion is None else bool(lesion.visible),
+            "held_steps": int(self._held),
+        }
+        if step is not None:
+            info["tissue"] = {
+                "status": step.status.value,
+                "iterations": step.diagnostics.iterations,
+                "sub_motions": step.diagnostics.sub_motions,
+                "skin_penetration_m": float(step.skin_penetration_m),
+            }
+        info.update(failure or {})
+        return info
+
+    def _clip_target(
+        self, position: NDArray[np.float64], rotation: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        cfg = self.task_config
+        local = self._start_rot.T @ (position - self._start_pos)
+        local[0] = np.clip(local[0], -cfg.workspace_m, cfg.workspace_m)
+        local[2] = np.clip(local[2], -cfg.workspace_m, cfg.workspace_m)
+        local[1] = np.clip(local[1], -cfg.max_lift_m, cfg.max_press_m)
+        position = self._start_pos + self._start_rot @ local
+        if rotation_angle(rotation, self._start_rot) > cfg.max_turn_rad:
+            rotation = self.controller.target_rot  # type: ignore[union-attr]
+        return position, rotation
+
+    def _make_finite(self) -> None:
+        """After a non-finite arm state (the episode ends), leave the arm at the start pose."""
+        self.place_probe(self._start_pos, self._start_rot)
