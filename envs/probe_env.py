@@ -17,7 +17,8 @@ phantom level or a mesh file, see ``tissue.TissueSpec``), ``young_pa``, ``poisso
 ``max_rotation_rad`` (the action's scale), the imaging geometry ``aperture_m``,
 ``imaging_depth_m``, ``slice_thickness_m``, and ``image`` (True, or an
 :class:`envs.ultrasound.BModeConfig`: observe a B-mode image of the slice under the probe;
-off by default, and then never computed).
+off by default, and then never computed; with it, ``rgb_array`` frames show the image to the
+right of the 3D view, at the frame's height).
 """
 
 from __future__ import annotations
@@ -386,11 +387,30 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         the tissue as it is now, seen from the probe's pose, black without contact."""
         if self.imager is None:
             return {}
+        return {"image": self._ultrasound(quat)[:, :, None]}
+
+    def _ultrasound(self, quat: NDArray[np.float64]) -> NDArray[np.uint8]:
+        """The B-mode frame at the probe's pose ``quat`` (w, x, y, z) now, (rows, cols)."""
+        assert self.imager is not None
         step = self.coupling.last_step
         force = 0.0 if step is None else float(np.linalg.norm(step.force_world_n))
         position = self.data.site_xpos[self.names.probe_site]
-        frame = self.imager.image(self.tissue, position, quat, force > TOUCH_FORCE_N)
-        return {"image": frame[:, :, None]}
+        return self.imager.image(self.tissue, position, quat, force > TOUCH_FORCE_N)
+
+    def _beside(self, frame: NDArray[np.uint8]) -> NDArray[np.uint8]:
+        """``frame`` with the B-mode image to its right, scaled to its height at the
+        image's aspect (aperture by imaging depth), grey as RGB."""
+        assert self.imager is not None
+        quat = np.empty(4)
+        mujoco.mju_mat2Quat(quat, self.data.site_xmat[self.names.probe_site])
+        image = self._ultrasound(quat)
+        config = self.imager.config
+        height = frame.shape[0]
+        width = max(1, round(height * config.aperture_m / config.imaging_depth_m))
+        rows = np.minimum((np.arange(height) * image.shape[0]) // height, image.shape[0] - 1)
+        cols = np.minimum((np.arange(width) * image.shape[1]) // width, image.shape[1] - 1)
+        scaled = image[np.ix_(rows, cols)]
+        return np.concatenate([frame, np.repeat(scaled[:, :, None], 3, axis=2)], axis=1)
 
     def sensed_wrench(self) -> NDArray[np.float64]:
         """The F/T sensor's wrench in the probe frame (see
@@ -421,7 +441,8 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
                 self.scene_config, self.tissue, width, height, self.camera_name
             )
         if self.render_mode == "rgb_array":
-            return self._renderer.frame(self.data)
+            frame = self._renderer.frame(self.data)
+            return frame if self.imager is None else self._beside(frame)
         self._renderer.show(self.data)
         return None
 

@@ -391,3 +391,25 @@ def test_the_environment_observes_the_image_only_when_asked() -> None:
     env.close()
     with pytest.raises(EnvConfigError, match="image must be True, False or"):
         gym.make("probegym/BreastCompress-v0", mesh=623, image="yes")
+
+
+def test_rgb_array_frames_show_the_image_beside_the_scene() -> None:
+    """With ``image=True`` an ``rgb_array`` frame is the 3D view with the B-mode image to its
+    right, at the frame's height and the image's aspect (40 x 50 mm): grey, and the pressed
+    slice, not black."""
+    import gymnasium as gym
+
+    import envs  # noqa: F401 - registers the environments
+
+    env = gym.make(
+        "probegym/BreastCompress-v0", mesh=623, image=True, render_mode="rgb_array",
+        width=160, height=200,
+    )  # fmt: skip
+    env.reset(seed=0)
+    for _ in range(10):
+        env.step(np.array([0.0, 0.3, 0.0, 0.0, 0.0, 0.0], dtype=np.float32))
+    frame = env.render()
+    env.close()
+    assert frame.shape == (200, 160 + 160, 3) and frame.dtype == np.uint8
+    image = frame[:, 160:]
+    assert np.array_equal(image[..., 0], image[..., 1]) and image.mean() > 20
