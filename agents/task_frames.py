@@ -2,8 +2,8 @@
 
 Runs each task's scripted policy (robust LM, the 1,303-tet phantom, seed 0) with the B-mode
 image on, and saves the ``rgb_array`` frame (the 3D view with the image to its right) at
-the start, when the lesion first shows and at the episode's end, as
-``task-<task>-<when>.png``.
+the start, when the lesion first shows (a task without one: after :data:`MIDDLE_STEP`
+steps) and at the episode's end, as ``task-<task>-<when>.png``.
 """
 
 from __future__ import annotations
@@ -19,7 +19,10 @@ import numpy as np
 TASKS = (
     ("probegym/BreastCompress-v0", "breast-compress", "CompressionPolicy"),
     ("probegym/LesionSearch-v0", "lesion-search", "LesionSearchPolicy"),
+    ("probegym/ForceScan-v0", "force-scan", "ForceScanPolicy"),
 )
+#: Without a lesion in the observation, the middle frame is taken after this many steps.
+MIDDLE_STEP = 20
 
 
 def save_frames(out: Path, mesh: int = 1363, seed: int = 0) -> list[Path]:
@@ -40,10 +43,14 @@ def save_frames(out: Path, mesh: int = 1363, seed: int = 0) -> list[Path]:
         obs, _ = env.reset(seed=seed)
         frames = {"start": env.render()}
         info: dict[str, Any] = {}
+        steps = 0
         while True:
             obs, _, terminated, truncated, info = env.step(policy(obs))
-            if "seen" not in frames and obs["lesion"][3] > 0.5:
+            steps += 1
+            if "lesion" in obs and "seen" not in frames and obs["lesion"][3] > 0.5:
                 frames["seen"] = env.render()
+            if "lesion" not in obs and steps == MIDDLE_STEP:
+                frames["middle"] = env.render()
             if terminated or truncated:
                 break
         frames["end"] = env.render()

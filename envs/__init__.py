@@ -12,6 +12,7 @@ Importing this package registers the environments::
 | --- | --- |
 | ``probegym/BreastCompress-v0`` | compress the breast until a lesion reaches a depth in the image |
 | ``probegym/LesionSearch-v0`` | find a lesion, centre it in the image, hold the force in a band |
+| ``probegym/ForceScan-v0`` | sweep a line on the skin, the force in a band, the face normal to it |
 """
 
 from __future__ import annotations
@@ -19,9 +20,10 @@ from __future__ import annotations
 import gymnasium as gym
 
 from envs.tasks.breast_compress import MAX_EPISODE_STEPS as _COMPRESS_STEPS
+from envs.tasks.force_scan import MAX_EPISODE_STEPS as _SCAN_STEPS
 from envs.tasks.lesion_search import MAX_EPISODE_STEPS as _SEARCH_STEPS
 
-ENV_IDS = ("probegym/BreastCompress-v0", "probegym/LesionSearch-v0")
+ENV_IDS = ("probegym/BreastCompress-v0", "probegym/LesionSearch-v0", "probegym/ForceScan-v0")
 
 
 def _register() -> None:
@@ -36,6 +38,12 @@ def _register() -> None:
             id="probegym/LesionSearch-v0",
             entry_point="envs.tasks.lesion_search:LesionSearchEnv",
             max_episode_steps=_SEARCH_STEPS,
+        )
+    if "probegym/ForceScan-v0" not in gym.registry:
+        gym.register(
+            id="probegym/ForceScan-v0",
+            entry_point="envs.tasks.force_scan:ForceScanEnv",
+            max_episode_steps=_SCAN_STEPS,
         )
 
 

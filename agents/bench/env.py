@@ -146,13 +146,17 @@ def run_env_benchmark(
     records: list[dict[str, Any]] = []
     started = time.strftime("%Y-%m-%dT%H:%M:%S")
     provenance = BenchRecord("probegym bench env: environment steps per second", command)
-    import envs
+    import envs.errors
 
     for env_id in env_ids or envs.ENV_IDS:
         for profile in profiles or DEFAULT_PROFILES:
             for level in levels or DEFAULT_LEVELS:
                 for contact in methods or DEFAULT_METHODS:
-                    record = benchmark_env(env_id, contact, profile, level)
+                    try:
+                        record = benchmark_env(env_id, contact, profile, level)
+                    except envs.errors.EnvConfigError as refused:  # a task's own limit
+                        print(f"{env_id} {contact} {profile} level {level}: skipped: {refused}")
+                        continue
                     records.append(record)
                     _print(record)
                     _write(json_path, records, started)

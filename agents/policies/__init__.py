@@ -2,6 +2,7 @@
 demonstrations)."""
 
 from agents.policies.compression import CompressionPolicy
+from agents.policies.force_scan import ForceScanPolicy
 from agents.policies.lesion_search import LesionSearchPolicy
 
-__all__ = ["CompressionPolicy", "LesionSearchPolicy"]
+__all__ = ["CompressionPolicy", "ForceScanPolicy", "LesionSearchPolicy"]

@@ -7,7 +7,6 @@ import time
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
-import mujoco
 import numpy as np
 from gymnasium import spaces
 from numpy.typing import NDArray
@@ -15,7 +14,7 @@ from numpy.typing import NDArray
 import tissue
 from envs.errors import EnvConfigError
 from envs.observations import LesionInImage, lesion_in_image
-from envs.probe_env import ProbeEnv, rotation_angle
+from envs.probe_env import ProbeEnv, quat_matrix, rotation_angle, turn_matrix
 
 #: The registered episode length [steps] (5 s at 20 ms).
 MAX_EPISODE_STEPS = 250
@@ -252,7 +251,7 @@ class BreastCompressEnv(ProbeEnv):
             position, quat = self.tissue.touching_pose(lesion.rest_centre_m)
         except tissue.TissueInputError:
             return -1.0
-        rotation = _matrix(quat)
+        rotation = quat_matrix(quat)
         return float((rotation.T @ (lesion.rest_centre_m - position))[1])
 
     # ------------------------------------------------------------------ episode
@@ -267,13 +266,15 @@ class BreastCompressEnv(ProbeEnv):
         self._target = label - 1
         lesion = self.tissue.lesions[self._target]
         position, quat = self.tissue.touching_pose(lesion.rest_centre_m)
-        rotation = _matrix(quat)
+        rotation = quat_matrix(quat)
         offset = rng.uniform(-cfg.start_offset_m, cfg.start_offset_m, size=2)
         tilt = rng.uniform(-cfg.start_tilt_rad, cfg.start_tilt_rad, size=2)
-        direction = rotation @ _turn(np.array([tilt[0], 0.0, tilt[1]])) @ np.array([0.0, 1.0, 0.0])
+        direction = (
+            rotation @ turn_matrix(np.array([tilt[0], 0.0, tilt[1]])) @ np.array([0.0, 1.0, 0.0])
+        )
         aim = lesion.rest_centre_m + rotation @ np.array([offset[0], 0.0, offset[1]])
         position, quat = self.tissue.touching_pose(aim, direction)
-        self.place_probe(position, _matrix(quat))
+        self.place_probe(position, quat_matrix(quat))
         compression = float(rng.uniform(*cfg.compression_range_m))
         start_depth = float(
             (
@@ -430,19 +431,3 @@ class BreastCompressEnv(ProbeEnv):
     def _make_finite(self) -> None:
         """After a non-finite arm state (the episode ends), leave the arm at the start pose."""
         self.place_probe(self._start_pos, self._start_rot)
-
-
-def _matrix(quat: NDArray[np.float64]) -> NDArray[np.float64]:
-    matrix = np.empty(9)
-    mujoco.mju_quat2Mat(matrix, np.asarray(quat, dtype=np.float64))
-    return matrix.reshape(3, 3)
-
-
-def _turn(vector: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The rotation matrix of a rotation vector [rad]."""
-    angle = float(np.linalg.norm(vector))
-    if angle == 0.0:
-        return np.eye(3)
-    quat = np.empty(4)
-    mujoco.mju_axisAngle2Quat(quat, vector / angle, angle)
-    return _matrix(quat)

@@ -15,8 +15,8 @@ from numpy.typing import NDArray
 import tissue
 from envs.errors import EnvConfigError
 from envs.observations import LesionInImage, lesion_in_image
-from envs.probe_env import ProbeEnv, rotation_angle
-from envs.tasks.breast_compress import PHANTOM_TARGET_LESIONS, _matrix, _turn
+from envs.probe_env import ProbeEnv, quat_matrix, rotation_angle, turn_matrix
+from envs.tasks.breast_compress import PHANTOM_TARGET_LESIONS
 
 #: The registered episode length [steps] (6 s at 20 ms).
 MAX_EPISODE_STEPS = 300
@@ -273,7 +273,7 @@ class LesionSearchEnv(ProbeEnv):
             position, quat = self.tissue.touching_pose(lesion.rest_centre_m)
         except tissue.TissueInputError:
             return -1.0
-        rotation = _matrix(quat)
+        rotation = quat_matrix(quat)
         return float((rotation.T @ (lesion.rest_centre_m - position))[1])
 
     # ------------------------------------------------------------------ episode
@@ -288,15 +288,15 @@ class LesionSearchEnv(ProbeEnv):
         self._target = label - 1
         lesion = self.tissue.lesions[self._target]
         _, quat = self.tissue.touching_pose(lesion.rest_centre_m)
-        rotation = _matrix(quat)
+        rotation = quat_matrix(quat)
         distance = float(rng.uniform(*cfg.start_offset_range_m))
         sign = 1.0 if rng.integers(2) == 1 else -1.0
         tilt = rng.uniform(-cfg.start_tilt_rad, cfg.start_tilt_rad, size=2)
-        tilted = rotation @ _turn(np.array([tilt[0], 0.0, tilt[1]]))
+        tilted = rotation @ turn_matrix(np.array([tilt[0], 0.0, tilt[1]]))
         self._start_offset = sign * distance
         aim = lesion.rest_centre_m + rotation @ np.array([self._start_offset, 0.0, 0.0])
         position, quat = self._touching_pose(aim, tilted)
-        self.place_probe(position, _matrix(quat))
+        self.place_probe(position, quat_matrix(quat))
         self._held = 0
         self._lesion_now = self._lesion(0.0)
         return self._observation(), self._info(None, {}, False)
@@ -310,7 +310,7 @@ class LesionSearchEnv(ProbeEnv):
         the apex by much)."""
         direction = rotation[:, 1]
         _, quat = self.tissue.touching_pose(aim, direction, roll_rad=0.0)
-        unrolled = _matrix(quat)
+        unrolled = quat_matrix(quat)
         # The roll turns x towards -z about the pressing axis: x(r) = cos r x0 - sin r z0.
         wanted = rotation[:, 0]
         roll = math.atan2(-float(wanted @ unrolled[:, 2]), float(wanted @ unrolled[:, 0]))
