@@ -324,8 +324,36 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
     def _clip_target(
         self, position: NDArray[np.float64], rotation: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """The task's workspace around the start pose (the base class: none)."""
+        """The probe's target kept in the task's workspace around the start pose: its task
+        config's ``workspace_m`` sideways (x, z), ``max_press_m`` in and ``max_lift_m`` out
+        (y), and within ``max_turn_rad`` of the start's orientation (else the last target's);
+        a task whose config has no workspace is not clipped."""
+        cfg = self.task_config
+        if not hasattr(cfg, "workspace_m"):
+            return position, rotation
+        local = self._start_rot.T @ (position - self._start_pos)
+        local[0] = np.clip(local[0], -cfg.workspace_m, cfg.workspace_m)
+        local[2] = np.clip(local[2], -cfg.workspace_m, cfg.workspace_m)
+        local[1] = np.clip(local[1], -cfg.max_lift_m, cfg.max_press_m)
+        position = self._start_pos + self._start_rot @ local
+        if rotation_angle(rotation, self._start_rot) > cfg.max_turn_rad:
+            rotation = self.controller.target_rot  # type: ignore[union-attr]
         return position, rotation
+
+    def _make_finite(self) -> None:
+        """After a non-finite arm state (the episode ends), leave the arm at the start pose."""
+        self.place_probe(self._start_pos, self._start_rot)
+
+    @staticmethod
+    def _tissue_info(step: tissue.TissueStep) -> dict[str, Any]:
+        """What ``info["tissue"]`` says of a tissue step: its status, Newton iterations,
+        sub-motions and the skin's penetration into the probe [m]."""
+        return {
+            "status": step.status.value,
+            "iterations": step.diagnostics.iterations,
+            "sub_motions": step.diagnostics.sub_motions,
+            "skin_penetration_m": float(step.skin_penetration_m),
+        }
 
     # ------------------------------------------------------------------ stepping
 

@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 import tissue
 from envs.errors import EnvConfigError
 from envs.observations import LesionInImage, lesion_in_image
-from envs.probe_env import ProbeEnv, quat_matrix, rotation_angle, turn_matrix
+from envs.probe_env import ProbeEnv, quat_matrix, turn_matrix
 
 #: The registered episode length [steps] (5 s at 20 ms).
 MAX_EPISODE_STEPS = 250
@@ -406,28 +406,6 @@ class BreastCompressEnv(ProbeEnv):
             "held_steps": int(self._held),
         }
         if step is not None:
-            info["tissue"] = {
-                "status": step.status.value,
-                "iterations": step.diagnostics.iterations,
-                "sub_motions": step.diagnostics.sub_motions,
-                "skin_penetration_m": float(step.skin_penetration_m),
-            }
+            info["tissue"] = self._tissue_info(step)
         info.update(failure or {})
         return info
-
-    def _clip_target(
-        self, position: NDArray[np.float64], rotation: NDArray[np.float64]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        cfg = self.task_config
-        local = self._start_rot.T @ (position - self._start_pos)
-        local[0] = np.clip(local[0], -cfg.workspace_m, cfg.workspace_m)
-        local[2] = np.clip(local[2], -cfg.workspace_m, cfg.workspace_m)
-        local[1] = np.clip(local[1], -cfg.max_lift_m, cfg.max_press_m)
-        position = self._start_pos + self._start_rot @ local
-        if rotation_angle(rotation, self._start_rot) > cfg.max_turn_rad:
-            rotation = self.controller.target_rot  # type: ignore[union-attr]
-        return position, rotation
-
-    def _make_finite(self) -> None:
-        """After a non-finite arm state (the episode ends), leave the arm at the start pose."""
-        self.place_probe(self._start_pos, self._start_rot)
