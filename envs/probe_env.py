@@ -453,6 +453,19 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
             return np.zeros(6)
         return np.concatenate([step.force_world_n, step.torque_world_nm])
 
+    def contact_force_n(self, step: tissue.TissueStep | None) -> float:
+        """The contact force's magnitude [N] (the tissue's, on the probe)."""
+        if step is None:
+            return 0.0
+        return float(np.linalg.norm(step.force_world_n))
+
+    def normal_force_n(self, step: tissue.TissueStep | None) -> float:
+        """The contact force along the probe's pressing axis [N] (positive pressing)."""
+        if step is None:
+            return 0.0
+        _, rotation = self.probe_pose()
+        return float(-step.force_world_n @ rotation[:, 1])
+
     def probe_pose(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The probe site's position [m] and rotation matrix, world frame."""
         return self.coupling.probe_pose()

@@ -325,12 +325,6 @@ class BreastCompressEnv(ProbeEnv):
 
     # ------------------------------------------------------------------ terms
 
-    def contact_force_n(self, step: tissue.TissueStep | None) -> float:
-        """The contact force's magnitude [N] (the tissue's, on the probe)."""
-        if step is None:
-            return 0.0
-        return float(np.linalg.norm(step.force_world_n))
-
     def _lesion(self, force: float) -> LesionInImage:
         position, rotation = self.probe_pose()
         lesion = self.tissue.lesions[self._target]

@@ -411,19 +411,6 @@ class ForceScanEnv(ProbeEnv):
 
     # ------------------------------------------------------------------ terms
 
-    def contact_force_n(self, step: tissue.TissueStep | None) -> float:
-        """The contact force's magnitude [N] (the tissue's, on the probe)."""
-        if step is None:
-            return 0.0
-        return float(np.linalg.norm(step.force_world_n))
-
-    def normal_force_n(self, step: tissue.TissueStep | None) -> float:
-        """The contact force along the probe's pressing axis [N] (positive pressing)."""
-        if step is None:
-            return 0.0
-        _, rotation = self.probe_pose()
-        return float(-step.force_world_n @ rotation[:, 1])
-
     def _tilt_now(self) -> float:
         """The angle between the probe's pressing axis and the rest skin's inward normal at
         the rest skin's point nearest the probe's centre [rad] (:meth:`rest_normal`)."""

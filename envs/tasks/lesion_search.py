@@ -356,19 +356,6 @@ class LesionSearchEnv(ProbeEnv):
 
     # ------------------------------------------------------------------ terms
 
-    def contact_force_n(self, step: tissue.TissueStep | None) -> float:
-        """The contact force's magnitude [N] (the tissue's, on the probe)."""
-        if step is None:
-            return 0.0
-        return float(np.linalg.norm(step.force_world_n))
-
-    def normal_force_n(self, step: tissue.TissueStep | None) -> float:
-        """The contact force along the probe's pressing axis [N] (positive pressing)."""
-        if step is None:
-            return 0.0
-        _, rotation = self.probe_pose()
-        return float(-step.force_world_n @ rotation[:, 1])
-
     def _lesion(self, force: float) -> LesionInImage:
         position, rotation = self.probe_pose()
         lesion = self.tissue.lesions[self._target]
