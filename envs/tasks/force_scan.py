@@ -109,19 +109,14 @@ class ForceScanEnv(ProbeEnv):
     tissue, with the normal force within 1-3 N and the pressing axis within 5 degrees of
     the skin's normal.
 
-    The sweep is along z, not x. The phantom's skin is strongly curved (its normal turns
-    by 1-1.5 degrees per millimetre, 40-55 degrees over a 35 mm path), so the probe must
-    turn as it goes, and the contact is frictionless (every method: LM and penalty are,
-    prescribed displacement slides its online node set, PBD's contact has no friction).
-    In a first trial with the scripted policy on the 1,303-tet phantom, along x uphill
-    (downhill runs off the phantom's edge) the flat 40 mm face rode over the dome and its
-    tilt lagged 14-23 degrees behind the skin's normal (0 of 6 seeds succeeded); along z
-    the 40 mm face lies across the direction of travel, along the skin's slope, and its
-    tilt stays within about 2 degrees on average (at most 5-8). Measured along z (10
-    seeds, robust profile): LM 8, penalty 9, prescribed 9, PBD 4 succeed, in 34-115
-    steps. The price: the probe's leading side ploughs the pressed tissue ahead of it, a
-    tangential force of 4-7 N that ``contact_force_n`` (and the 10 N hard limit) counts;
-    PBD's force, jerkier, overshoots to the hard limit on most of its failures.
+    The sweep is along z, not x: the phantom's skin is strongly curved (its normal turns
+    40-55 degrees over a path) and the contact is frictionless for every method (LM and
+    penalty are; prescribed displacement slides its online node set; PBD's contact has no
+    friction). Across the direction of travel the 40 mm face lies along the skin's slope
+    and can follow its normal; along x it rides over the dome (see
+    ``docs/design-decisions.md``). The price: the probe's leading side ploughs the pressed
+    tissue ahead of it, a tangential force that ``contact_force_n`` (and the 10 N hard
+    limit) counts. The scripted policy does not solve every episode (docs/environments.md).
 
     The policy is told the path and the skin's orientation under the probe (the ``path``
     observation); how it keeps the face normal is its business
