@@ -2,9 +2,32 @@
 
 from __future__ import annotations
 
+import numbers
+from typing import Any
+
+import numpy as np
+
 import tissue
 
 
 class EnvConfigError(tissue.ConfigError):
     """A keyword argument or setting an environment cannot take: the message names the
     value, what was expected and how to fix it."""
+
+
+def finite_number(value: Any) -> bool:
+    """Whether ``value`` is a finite real number (not a bool)."""
+    return (
+        isinstance(value, numbers.Real)
+        and not isinstance(value, bool)
+        and bool(np.isfinite(float(value)))
+    )
+
+
+def number_pair(value: Any) -> tuple[float, float] | None:
+    """``value`` as two finite numbers (a tuple or list of two), or None."""
+    if not isinstance(value, (tuple, list)) or len(value) != 2:
+        return None
+    if not all(finite_number(v) for v in value):
+        return None
+    return float(value[0]), float(value[1])

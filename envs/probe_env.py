@@ -97,6 +97,16 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 50}  # noqa: RUF012
 
+    #: The simulated effects of the observation terms every task shares (a task's
+    #: ``TERM_EFFECTS`` adds its own terms; see :data:`envs.observations.EFFECTS`).
+    COMMON_TERM_EFFECTS: ClassVar[dict[str, tuple[str, ...]]] = {
+        "probe_pose": (),
+        "wrench": ("force_feedback",),
+        "joint_pos": (),
+        "joint_vel": (),
+        "image": ("deformation", "image"),
+    }
+
     #: The task's own settings (a frozen dataclass); keyword arguments of its fields go there.
     task_config_type: ClassVar[type] = type(None)
 

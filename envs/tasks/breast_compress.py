@@ -187,13 +187,9 @@ class BreastCompressEnv(ProbeEnv):
 
     #: The simulated effects each term needs (see :data:`envs.observations.EFFECTS`).
     TERM_EFFECTS: ClassVar[dict[str, tuple[str, ...]]] = {
-        "probe_pose": (),
-        "wrench": ("force_feedback",),
-        "joint_pos": (),
-        "joint_vel": (),
+        **ProbeEnv.COMMON_TERM_EFFECTS,
         "lesion": ("deformation", "lesion_tracking"),
         "target_depth": (),
-        "image": ("deformation", "image"),
         "depth_error": ("deformation", "lesion_tracking"),
         "centring": ("deformation", "lesion_tracking"),
         "force": ("force_feedback",),

@@ -13,10 +13,9 @@ from gymnasium import spaces
 from numpy.typing import NDArray
 
 import tissue
-from envs.errors import EnvConfigError
+from envs.errors import EnvConfigError, finite_number, number_pair
 from envs.probe_env import ProbeEnv, quat_matrix
 from envs.tasks.breast_compress import PHANTOM_TARGET_LESIONS
-from envs.tasks.lesion_search import _is_number, _pair
 
 #: The registered episode length [steps] (4 s at 20 ms).
 MAX_EPISODE_STEPS = 200
@@ -75,21 +74,21 @@ class ForceScanConfig:
             "max_turn_rad",
         ):
             value = getattr(self, name)
-            if not (_is_number(value) and value > 0):
+            if not (finite_number(value) and value > 0):
                 raise EnvConfigError(f"{name} must be a positive number; got {value!r}")
-        lengths = _pair(self.path_length_range_m)
+        lengths = number_pair(self.path_length_range_m)
         if lengths is None or not (0.0 < lengths[0] <= lengths[1] < self.workspace_m):
             raise EnvConfigError(
                 f"path_length_range_m must be (low, high) with 0 < low <= high < workspace_m "
                 f"({self.workspace_m!r} m); got {self.path_length_range_m!r}"
             )
-        band = _pair(self.force_band_n)
+        band = number_pair(self.force_band_n)
         if band is None or not (0.0 <= band[0] < band[1] < self.hard_force_n):
             raise EnvConfigError(
                 f"force_band_n must be (low, high) with 0 <= low < high < hard_force_n "
                 f"({self.hard_force_n!r} N); got {self.force_band_n!r}"
             )
-        if not (_is_number(self.min_good_share) and 0.0 < self.min_good_share <= 1.0):
+        if not (finite_number(self.min_good_share) and 0.0 < self.min_good_share <= 1.0):
             raise EnvConfigError(
                 f"min_good_share must be a number in (0, 1]; got {self.min_good_share!r}"
             )
@@ -221,12 +220,8 @@ class ForceScanEnv(ProbeEnv):
 
     #: The simulated effects each term needs (see :data:`envs.observations.EFFECTS`).
     TERM_EFFECTS: ClassVar[dict[str, tuple[str, ...]]] = {
-        "probe_pose": (),
-        "wrench": ("force_feedback",),
-        "joint_pos": (),
-        "joint_vel": (),
+        **ProbeEnv.COMMON_TERM_EFFECTS,
         "path": ("force_feedback",),
-        "image": ("deformation", "image"),
         "progress": (),
         "force": ("force_feedback",),
         "tilt": (),

@@ -13,7 +13,7 @@ from gymnasium import spaces
 from numpy.typing import NDArray
 
 import tissue
-from envs.errors import EnvConfigError
+from envs.errors import EnvConfigError, finite_number, number_pair
 from envs.observations import LesionInImage, lesion_in_image
 from envs.probe_env import ProbeEnv, quat_matrix, turn_matrix
 from envs.tasks.breast_compress import PHANTOM_TARGET_LESIONS
@@ -70,17 +70,17 @@ class LesionSearchConfig:
             "max_turn_rad",
         ):
             value = getattr(self, name)
-            if not (_is_number(value) and value > 0):
+            if not (finite_number(value) and value > 0):
                 raise EnvConfigError(f"{name} must be a positive number; got {value!r}")
-        if not (_is_number(self.start_tilt_rad) and self.start_tilt_rad >= 0):
+        if not (finite_number(self.start_tilt_rad) and self.start_tilt_rad >= 0):
             raise EnvConfigError(f"start_tilt_rad must be >= 0; got {self.start_tilt_rad!r}")
-        offsets = _pair(self.start_offset_range_m)
+        offsets = number_pair(self.start_offset_range_m)
         if offsets is None or not (0.0 <= offsets[0] <= offsets[1] <= self.workspace_m):
             raise EnvConfigError(
                 f"start_offset_range_m must be (low, high) with 0 <= low <= high <= "
                 f"workspace_m ({self.workspace_m!r} m); got {self.start_offset_range_m!r}"
             )
-        band = _pair(self.force_band_n)
+        band = number_pair(self.force_band_n)
         if band is None or not (0.0 <= band[0] < band[1] < self.hard_force_n):
             raise EnvConfigError(
                 f"force_band_n must be (low, high) with 0 <= low < high < hard_force_n "
@@ -90,23 +90,6 @@ class LesionSearchConfig:
             isinstance(self.hold_steps, numbers.Integral) and self.hold_steps >= 1
         ):
             raise EnvConfigError(f"hold_steps must be a whole number >= 1; got {self.hold_steps!r}")
-
-
-def _is_number(value: Any) -> bool:
-    return (
-        isinstance(value, numbers.Real)
-        and not isinstance(value, bool)
-        and bool(np.isfinite(float(value)))
-    )
-
-
-def _pair(value: Any) -> tuple[float, float] | None:
-    """Two finite numbers, or None."""
-    if not isinstance(value, (tuple, list)) or len(value) != 2:
-        return None
-    if not all(_is_number(v) for v in value):
-        return None
-    return float(value[0]), float(value[1])
 
 
 class LesionSearchEnv(ProbeEnv):
@@ -213,12 +196,8 @@ class LesionSearchEnv(ProbeEnv):
 
     #: The simulated effects each term needs (see :data:`envs.observations.EFFECTS`).
     TERM_EFFECTS: ClassVar[dict[str, tuple[str, ...]]] = {
-        "probe_pose": (),
-        "wrench": ("force_feedback",),
-        "joint_pos": (),
-        "joint_vel": (),
+        **ProbeEnv.COMMON_TERM_EFFECTS,
         "lesion": ("deformation", "lesion_tracking"),
-        "image": ("deformation", "image"),
         "centring": ("deformation", "lesion_tracking"),
         "force": ("force_feedback",),
         "smoothness": (),
