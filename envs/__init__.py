@@ -13,12 +13,17 @@ Importing this package registers the environments::
 | ``probegym/BreastCompress-v0`` | compress the breast until a lesion reaches a depth in the image |
 | ``probegym/LesionSearch-v0`` | find a lesion, centre it in the image, hold the force in a band |
 | ``probegym/ForceScan-v0`` | sweep a line on the skin, the force in a band, the face normal to it |
+
+Every task takes ``domain_randomization=True`` (or a dict, or a :class:`DomainRandomization`):
+tissue and lesion stiffness, lesion placement, F/T noise and bias, probe pose noise, drawn
+from the reset's seed (:mod:`envs.randomization`).
 """
 
 from __future__ import annotations
 
 import gymnasium as gym
 
+from envs.randomization import DomainRandomization
 from envs.tasks.breast_compress import MAX_EPISODE_STEPS as _COMPRESS_STEPS
 from envs.tasks.force_scan import MAX_EPISODE_STEPS as _SCAN_STEPS
 from envs.tasks.lesion_search import MAX_EPISODE_STEPS as _SEARCH_STEPS
@@ -49,4 +54,4 @@ def _register() -> None:
 
 _register()
 
-__all__ = ["ENV_IDS"]
+__all__ = ["ENV_IDS", "DomainRandomization"]

@@ -18,7 +18,10 @@ phantom level or a mesh file, see ``tissue.TissueSpec``), ``young_pa``, ``poisso
 ``imaging_depth_m``, ``slice_thickness_m``, and ``image`` (True, or an
 :class:`envs.ultrasound.BModeConfig`: observe a B-mode image of the slice under the probe;
 off by default, and then never computed; with it, ``rgb_array`` frames show the image to the
-right of the 3D view, at the frame's height).
+right of the 3D view, at the frame's height), ``domain_randomization`` (True, a dict or an
+:class:`envs.randomization.DomainRandomization`: each reset draws the tissue's and lesions'
+stiffness and the lesions' places, and the F/T sensor and probe pose the policy observes are
+noisy; off by default).
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ from envs.controller import (
 from envs.coupling import TissueCoupling
 from envs.errors import EnvConfigError
 from envs.observations import TOUCH_FORCE_N, ImagingConfig, sensed_wrench
+from envs.randomization import DomainRandomization, Randomizer
 from envs.rendering import CAMERAS, SceneRenderer
 from envs.scene import SceneConfig, build_scene, scene_names
 from envs.ultrasound import BModeConfig, BModeImager
@@ -129,6 +133,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         robot_dt: float = 0.002,
         reaction: bool = True,
         image: bool | BModeConfig = False,
+        domain_randomization: bool | dict[str, Any] | DomainRandomization | None = False,
         **kwargs: Any,
     ) -> None:
         configs = {
@@ -158,6 +163,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
                     "robot_dt",
                     "reaction",
                     "image",
+                    "domain_randomization",
                 }  # fmt: skip
                 | {f.name for config in configs.values() for f in fields(config)}
             )
@@ -213,6 +219,9 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         else:
             self.controller = JointImpedance(self.model, self.names, self.controller_config)
         self.imager = self._make_imager(image)
+        settings = DomainRandomization.parse(domain_randomization)
+        #: Draws each episode's variation (None: no domain randomisation).
+        self.randomizer = None if settings is None else Randomizer(settings, self.tissue)
         self._home = self._solve_home()
         self.render_mode = render_mode
         self.camera_name = camera_name
@@ -265,6 +274,38 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
                 -JOINT_VELOCITY_LIMIT, JOINT_VELOCITY_LIMIT, shape=(n,), dtype=np.float32
             ),
         }
+
+    # ------------------------------------------------------------------ episodes
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, NDArray[Any]], dict[str, Any]]:
+        """Seed the generators; with domain randomisation, draw this episode's variation and
+        its tissue. Tasks extend this (they place the probe and observe)."""
+        super().reset(seed=seed)
+        if self.randomizer is not None:
+            self.randomizer.seed(seed)
+            _, variant = self.randomizer.draw()
+            self._use_tissue(variant)
+        return {}, {}
+
+    def _use_tissue(self, model: tissue.Tissue) -> None:
+        """Simulate, image and draw ``model`` from now on (a variant of the nominal tissue:
+        same topology, so the scene's drawn surface fits it)."""
+        if model is self.tissue:
+            return
+        self.tissue = model
+        self.coupling.tissue = model
+        if self.imager is not None:
+            self.imager = BModeImager(model, self.imager.config)
+        if self._renderer is not None:
+            self._renderer.tissue = model
+
+    def _variation_info(self) -> dict[str, Any]:
+        """``{"variation": ...}`` for a reset's info under domain randomisation, else {}."""
+        if self.randomizer is None or self.randomizer.variation is None:
+            return {}
+        return {"variation": self.randomizer.variation.as_info()}
 
     # ------------------------------------------------------------------ the arm
 
@@ -411,9 +452,19 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         if quat[0] < 0.0:
             quat = -quat  # one of the two: w >= 0
         pose = np.concatenate([self.data.site_xpos[site], quat])
+        wrench = self.sensed_wrench()
+        if self.randomizer is not None:
+            wrench = self.randomizer.noisy_wrench(wrench)
+            shift, turn = self.randomizer.pose_noise()
+            seen = turn_matrix(turn) @ self.data.site_xmat[site].reshape(3, 3)
+            reported = np.empty(4)
+            mujoco.mju_mat2Quat(reported, seen.reshape(-1))
+            if reported[0] < 0.0:
+                reported = -reported
+            pose = np.concatenate([self.data.site_xpos[site] + shift, reported])
         return {
             "probe_pose": pose.astype(np.float32),
-            "wrench": np.clip(self.sensed_wrench(), -WRENCH_LIMIT, WRENCH_LIMIT).astype(np.float32),
+            "wrench": np.clip(wrench, -WRENCH_LIMIT, WRENCH_LIMIT).astype(np.float32),
             "joint_pos": self.data.qpos[self.names.joint_qpos].astype(np.float32),
             "joint_vel": np.clip(
                 self.data.qvel[self.names.joint_dof], -JOINT_VELOCITY_LIMIT, JOINT_VELOCITY_LIMIT

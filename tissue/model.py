@@ -14,7 +14,7 @@ import copy
 import hashlib
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -23,9 +23,12 @@ from numpy.typing import ArrayLike, NDArray
 from tissue.contact import make_contact_model
 from tissue.contact.base import ContactModel, ContactResult
 from tissue.contact.placement import first_contact_pose, radial_roll_rad, skin_normal_above
+from tissue.contact.registry import contact_class
 from tissue.contact.wrench_stiffness import wrench_stiffness
-from tissue.errors import TissueInputError
+from tissue.errors import MeshError, TissueInputError
+from tissue.fem.material import TissueMaterials
 from tissue.lesions import Lesion, LesionTracker
+from tissue.mesh.lesion_shift import lesion_shift_limits, shift_lesions
 from tissue.probe import ProbeShape, quat_to_matrix
 from tissue.sim.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.spec import ResolvedTissue, TissueSpec, resolve_spec
@@ -167,6 +170,7 @@ class Tissue:
             mesh.nodes.tobytes() + mesh.tets.tobytes() + repr(resolved.materials).encode()
         ).hexdigest()[:16]
         self._fingerprint = f"{resolved.spec.contact}/{resolved.spec.profile}/{digest}"
+        self._shift_limits: NDArray[np.float64] | None = None
 
     # ------------------------------------------------------------------ description
 
@@ -328,6 +332,61 @@ class Tissue:
         # Under the step's thread rule: a small tissue's kernels on one thread (tissue.threads).
         with one_thread_below(3 * self._resolved.mesh.node_count, SERIAL_STEP_UNKNOWNS):
             return wrench_stiffness(self._model)
+
+    # ------------------------------------------------------------------ variants
+
+    def varied(
+        self,
+        materials: TissueMaterials | None = None,
+        lesion_offsets_m: ArrayLike | None = None,
+    ) -> Tissue:
+        """A new tissue like this one with other materials and/or its lesions moved at rest
+        (for domain randomisation): same mesh topology, skin, probe, contact method and
+        profile; the strategy's settings re-derived for the variant
+        (:meth:`ContactModel.settings_for_variant`: PBD keeps its calibration). No mesh is
+        generated, so a variant costs about what building the model costs (no gmsh, no
+        calibration). This tissue is left as it is.
+
+        Args:
+            materials: the variant's materials (None: this tissue's).
+            lesion_offsets_m: one offset per lesion [m], (lesion_count, 3): each lesion moves
+                by it at rest, the material around it following smoothly
+                (:func:`tissue.mesh.lesion_shift.shift_lesions`); None: where they are.
+
+        Raises:
+            TissueInputError: materials of another type, or offsets of the wrong shape or
+                beyond what the mesh allows (:meth:`lesion_shift_limits_m`).
+        """
+        resolved = self._resolved
+        if materials is None:
+            materials = resolved.materials
+        elif not isinstance(materials, TissueMaterials):
+            raise TissueInputError(
+                f"materials must be a tissue.TissueMaterials; got {type(materials).__name__}"
+            )
+        mesh = resolved.mesh
+        if lesion_offsets_m is not None:
+            try:
+                mesh = shift_lesions(mesh, lesion_offsets_m)
+            except MeshError as error:
+                raise TissueInputError(str(error)) from error
+        spec = replace(
+            resolved.spec, young_pa=None, poisson=None, lesion_stiffness_ratio=None,
+            materials=materials,
+        )  # fmt: skip
+        variant = replace(resolved, spec=spec, mesh=mesh, materials=materials)
+        config, params = contact_class(resolved.method).settings_for_variant(
+            variant, mesh, materials
+        )
+        return Tissue(replace(variant, config=config, params=params))
+
+    def lesion_shift_limits_m(self) -> NDArray[np.float64]:
+        """Per lesion, the largest offset [m] :meth:`varied` accepts for it in any direction
+        (:func:`tissue.mesh.lesion_shift.lesion_shift_limits`), (lesion_count,); computed
+        once per tissue (a few tenths of a second on the coarse levels, 2 s at 12,861 tets)."""
+        if self._shift_limits is None:
+            self._shift_limits = lesion_shift_limits(self._resolved.mesh)
+        return self._shift_limits.copy()
 
     # ------------------------------------------------------------------ snapshots
 

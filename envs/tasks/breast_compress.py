@@ -281,7 +281,7 @@ class BreastCompressEnv(ProbeEnv):
         self._target_depth = start_depth - compression
         self._held = 0
         self._lesion_now = self._lesion(0.0)
-        return self._observation(), self._info(None, {}, False)
+        return self._observation(), self._info(None, {}, False) | self._variation_info()
 
     def step(
         self, action: Any

@@ -316,7 +316,7 @@ class ForceScanEnv(ProbeEnv):
         self._started = False
         self._counted = 0
         self._good = 0
-        return self._observation(), self._info(None, {}, False)
+        return self._observation(), self._info(None, {}, False) | self._variation_info()
 
     def _walk(
         self,

@@ -278,7 +278,7 @@ class LesionSearchEnv(ProbeEnv):
         self.place_probe(position, quat_matrix(quat))
         self._held = 0
         self._lesion_now = self._lesion(0.0)
-        return self._observation(), self._info(None, {}, False)
+        return self._observation(), self._info(None, {}, False) | self._variation_info()
 
     def _touching_pose(
         self, aim: NDArray[np.float64], rotation: NDArray[np.float64]

@@ -175,6 +175,14 @@ class ContactModel(abc.ABC):
         return config, params
 
     @classmethod
+    def settings_for_variant(cls, resolved: Any, mesh: TetMesh, materials: Any) -> tuple[Any, Any]:
+        """The ``(config, params)`` of a variant of a resolved tissue
+        (:meth:`tissue.Tissue.varied`: other materials, lesions moved at rest): by default
+        :meth:`settings_for` again. A strategy whose settings were fitted to the nominal
+        tissue (PBD's calibrated compliance scales) keeps them instead of fitting again."""
+        return cls.settings_for(resolved.spec, mesh, materials)
+
+    @classmethod
     def profile_params(cls, spec: Any, mesh: TetMesh) -> Any:
         """The strategy's parameters under ``spec``'s profile: the defaults unless a
         strategy's profiles differ (prescribed displacement's node set)."""

@@ -157,6 +157,14 @@ class PBDContact(ContactModel):
         )
         return calibrated_pbd_config(mesh, materials, base), None
 
+    @classmethod
+    def settings_for_variant(cls, resolved: Any, mesh: TetMesh, materials: Any) -> tuple[Any, Any]:
+        """The nominal tissue's settings, calibration included: the compliance scales correct
+        XPBD's resolution- and iteration-dependent stiffness and multiply ``1 / (mu V)``, so
+        they carry over to other materials and to lesions moved by a few millimetres
+        (fitting them again would cost a calibration per variant)."""
+        return resolved.config, resolved.params
+
     def __init__(
         self,
         mesh: TetMesh,
