@@ -13,6 +13,8 @@ first), no rendering, one process. Per record:
   coupling's wrench, the controller's torques, the tissue's step with its wrench stiffness,
   the observation and reward;
 - ``reset_ms``: the median wall time of five resets after the first.
+- ``reset_randomized_ms``: the same with ``domain_randomization=True`` (each reset draws
+  and builds a tissue variant), over seeds 1-5 after a first reset.
 - ``image_ms``: the median time of a 128 x 128 B-mode frame (``image=True``) at the run's
   last state, timed apart from the steps (the steps per second are without the image).
 
@@ -83,6 +85,16 @@ def benchmark_env(env_id: str, contact: str, profile: str, level: int) -> dict[s
             break
     image_ms = _image_ms(unwrapped)
     env.close()
+    randomized = gym.make(
+        env_id, contact=contact, profile=profile, mesh=level, domain_randomization=True
+    )
+    randomized.reset(seed=0)
+    randomized_resets = []
+    for seed in range(1, 6):
+        tic = time.perf_counter()
+        randomized.reset(seed=seed)
+        randomized_resets.append(time.perf_counter() - tic)
+    randomized.close()
     median = {key: float(np.median([p[key] for p in parts])) * 1e3 for key in parts[0]}
     cpu_ms = float(np.median(cpu)) * 1e3
     record: dict[str, Any] = {
@@ -101,6 +113,7 @@ def benchmark_env(env_id: str, contact: str, profile: str, level: int) -> dict[s
         "observation_ms": median["observation_s"],
         "image_ms": image_ms,
         "reset_ms": float(np.median(resets)) * 1e3,
+        "reset_randomized_ms": float(np.median(randomized_resets)) * 1e3,
         "statuses": {status: statuses.count(status) for status in set(statuses)},
         "load_average": list(os.getloadavg()),
     }
@@ -169,7 +182,8 @@ def _table(records: list[dict[str, Any]]) -> MarkdownTable:
     table = MarkdownTable(
         "env steps per second (median, from CPU time) and a step's parts [ms]",
         ["env", "contact", "profile", "level (tets)", "steps/s", "target", "tissue",
-         "controller", "robot", "observation", "reset", "image (ms a frame)"],
+         "controller", "robot", "observation", "reset", "reset (randomised)",
+         "image (ms a frame)"],
     )  # fmt: skip
     for r in records:
         target = r.get("target_steps_per_s")
@@ -180,7 +194,8 @@ def _table(records: list[dict[str, Any]]) -> MarkdownTable:
             r["env_id"], r["contact"], r["profile"], f"{r['level']} ({r['tets']:,})",
             f"{r['steps_per_s']:.0f}", verdict, f"{r['tissue_ms']:.2f}",
             f"{r['controller_ms']:.2f}", f"{r['robot_ms']:.2f}", f"{r['observation_ms']:.2f}",
-            f"{r['reset_ms']:.2f}", f"{r['image_ms']:.2f}",
+            f"{r['reset_ms']:.2f}", f"{r['reset_randomized_ms']:.0f}",
+            f"{r['image_ms']:.2f}",
         ])  # fmt: skip
     return table
 
@@ -194,7 +209,8 @@ def _print(record: dict[str, Any]) -> None:
         f"(cpu {record['step_cpu_ms']:.2f} ms, wall {record['step_wall_ms']:.2f} ms; robot "
         f"{record['robot_ms']:.2f}, controller {record['controller_ms']:.2f}, tissue "
         f"{record['tissue_ms']:.2f}, observation {record['observation_ms']:.2f} ms), reset "
-        f"{record['reset_ms']:.2f} ms, image {record['image_ms']:.2f} ms a frame"
+        f"{record['reset_ms']:.2f} ms ({record['reset_randomized_ms']:.0f} ms randomised), "
+        f"image {record['image_ms']:.2f} ms a frame"
         + ("" if target is None else f"; target {target:.0f}{verdict}"),
         flush=True,
     )

@@ -177,6 +177,12 @@ class BreastCompressEnv(ProbeEnv):
     :class:`BreastCompressConfig` for this task's. Defaults: Lagrange-multiplier contact
     (exact forces), the robust profile (stable under jerky poses), the 1,303-tet phantom.
 
+    ``domain_randomization=True`` (or a dict, or an :class:`envs.DomainRandomization`) draws
+    a patient at each reset (tissue and lesion stiffness, lesions moved at rest) and makes
+    the observed ``wrench`` and ``probe_pose`` noisy (F/T bias and noise, pose noise); the
+    reset's ``info["variation"]`` says what was drawn. Rewards and success use the simulated
+    truth. See :mod:`envs.randomization`.
+
     ## Version history
 
     - v0: first release.

@@ -210,6 +210,12 @@ class ForceScanEnv(ProbeEnv):
     needs its sliding node set (the robust profile's); ``contact="prescribed",
     profile="paper"`` (a node set fixed at first contact: it cannot sweep) is refused.
 
+    ``domain_randomization=True`` (or a dict, or an :class:`envs.DomainRandomization`) draws
+    a patient at each reset (tissue and lesion stiffness, lesions moved at rest) and makes
+    the observed ``wrench`` and ``probe_pose`` noisy (F/T bias and noise, pose noise); the
+    reset's ``info["variation"]`` says what was drawn. Rewards and success use the simulated
+    truth. See :mod:`envs.randomization`.
+
     ## Version history
 
     - v0: first release.

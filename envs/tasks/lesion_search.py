@@ -186,6 +186,12 @@ class LesionSearchEnv(ProbeEnv):
     :class:`LesionSearchConfig` for this task's (``start_offset_range_m``,
     ``centre_tolerance_m``, ``force_band_n``, ``hold_steps``, ``hard_force_n``, ...).
 
+    ``domain_randomization=True`` (or a dict, or an :class:`envs.DomainRandomization`) draws
+    a patient at each reset (tissue and lesion stiffness, lesions moved at rest) and makes
+    the observed ``wrench`` and ``probe_pose`` noisy (F/T bias and noise, pose noise); the
+    reset's ``info["variation"]`` says what was drawn. Rewards and success use the simulated
+    truth. See :mod:`envs.randomization`.
+
     ## Version history
 
     - v0: first release.

@@ -130,6 +130,7 @@ def test_bench_env_reports_steps_per_second_and_where_the_time_goes(tmp_path: Pa
         assert sum(record[part] for part in parts) <= record["step_wall_ms"] * 1.05
         assert record["steps_per_s"] > 0.0 and record["reset_ms"] > 0.0
         assert 0.0 < record["image_ms"] < 1e3  # a B-mode frame, timed apart from the steps
+        assert record["reset_randomized_ms"] > record["reset_ms"]  # it builds a variant
     assert "image (ms a frame)" in json_path.with_suffix(".md").read_text()
 
 
