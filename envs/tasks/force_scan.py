@@ -343,19 +343,13 @@ class ForceScanEnv(ProbeEnv):
             tangent /= float(np.linalg.norm(tangent))
             aim = point + stride * tangent
             try:
-                point, _ = self.tissue.touching_pose(aim + REACH_M * normal, normal)
+                point, normal = self.tissue.rest_skin_normal(aim + REACH_M * normal, -normal)
             except tissue.TissueInputError as error:  # pragma: no cover - off the phantom
                 raise EnvConfigError(
                     f"the path from lesion {label} leaves the skin ({error}): set "
                     f"target_lesions or a shorter path_length_range_m"
                 ) from error
-            found = self.rest_normal(point)
-            if found is None:  # pragma: no cover - a skin point has a normal
-                raise EnvConfigError(
-                    f"the path from lesion {label} leaves the skin: set target_lesions or "
-                    f"a shorter path_length_range_m"
-                )
-            normal, heading = found, tangent
+            heading = tangent
             left -= stride
         return point, normal
 
@@ -420,17 +414,15 @@ class ForceScanEnv(ProbeEnv):
 
     def rest_normal(self, point: NDArray[np.float64]) -> NDArray[np.float64] | None:
         """The rest skin's inward normal at its point nearest ``point`` [m] (one fixed-point
-        pass: the normal where the vertical through the point leaves the rest skin, then the
-        skin point along that normal and the normal there); None off the skin."""
-        down = np.array([0.0, 0.0, -REACH_M])
+        pass of :meth:`tissue.Tissue.rest_skin_normal`: the normal where the vertical through
+        the point leaves the rest skin, then the skin point on the line through the point
+        along that normal, and the normal there); None off the skin."""
         try:
-            _, quat = self.tissue.touching_pose(point + down)
-            normal = tissue.pressing_direction(quat)
-            skin, _ = self.tissue.touching_pose(point + REACH_M * normal, normal)
-            _, quat = self.tissue.touching_pose(skin + down)
+            _, normal = self.tissue.rest_skin_normal(point - np.array([0.0, 0.0, REACH_M]))
+            _, normal = self.tissue.rest_skin_normal(point + REACH_M * normal, -normal)
         except tissue.TissueInputError:
             return None
-        return tissue.pressing_direction(quat)
+        return normal
 
     def _progress_now(self) -> float:
         position, _ = self.probe_pose()

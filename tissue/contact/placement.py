@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
@@ -26,22 +27,61 @@ def ray_surface_hit(
 
     Möller & Trumbore (1997) ray-triangle intersection, vectorised over the triangles.
     """
-    direction = direction / np.linalg.norm(direction)
     a, b, c = (vertices[triangles[:, i]] for i in range(3))
-    edge1, edge2 = b - a, c - a
-    p = np.cross(direction, edge2)
-    det = np.einsum("ij,ij->i", edge1, p)
-    ok = np.abs(det) > 1e-18
-    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-    s = origin - a
-    u = np.einsum("ij,ij->i", s, p) * inv
-    q = np.cross(s, edge1)
-    v = (q @ direction) * inv
-    t = np.einsum("ij,ij->i", edge2, q) * inv
-    hit = ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
-    if not np.any(hit):
+    return _first_hit(a, b - a, c - a, origin, direction)
+
+
+def _first_hit(
+    a: NDArray[np.float64],
+    edge1: NDArray[np.float64],
+    edge2: NDArray[np.float64],
+    origin: NDArray[np.float64],
+    direction: NDArray[np.float64],
+) -> NDArray[np.float64] | None:
+    """:func:`ray_surface_hit` on triangles given by a corner and two edges, (n, 3) each."""
+    direction = np.ascontiguousarray(direction / np.linalg.norm(direction), dtype=np.float64)
+    origin = np.ascontiguousarray(origin, dtype=np.float64)
+    t = _nearest_hit_distance(
+        np.ascontiguousarray(a), np.ascontiguousarray(edge1), np.ascontiguousarray(edge2),
+        origin, direction,
+    )  # fmt: skip
+    if not np.isfinite(t):
         return None
-    return origin + float(t[hit].min()) * direction
+    return origin + t * direction
+
+
+@nb.njit(cache=True)
+def _nearest_hit_distance(
+    a: NDArray[np.float64],
+    edge1: NDArray[np.float64],
+    edge2: NDArray[np.float64],
+    origin: NDArray[np.float64],
+    direction: NDArray[np.float64],
+) -> float:
+    """The smallest t > 0 with origin + t direction on a triangle (Möller-Trumbore), inf if
+    none."""
+    best = np.inf
+    dx, dy, dz = direction[0], direction[1], direction[2]
+    for k in range(a.shape[0]):
+        e1x, e1y, e1z = edge1[k, 0], edge1[k, 1], edge1[k, 2]
+        e2x, e2y, e2z = edge2[k, 0], edge2[k, 1], edge2[k, 2]
+        px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+        det = e1x * px + e1y * py + e1z * pz
+        if abs(det) <= 1e-18:
+            continue
+        inv = 1.0 / det
+        sx, sy, sz = origin[0] - a[k, 0], origin[1] - a[k, 1], origin[2] - a[k, 2]
+        u = (sx * px + sy * py + sz * pz) * inv
+        if u < 0.0 or u > 1.0:
+            continue
+        qx, qy, qz = sy * e1z - sz * e1y, sz * e1x - sx * e1z, sx * e1y - sy * e1x
+        v = (qx * dx + qy * dy + qz * dz) * inv
+        if v < 0.0 or u + v > 1.0:
+            continue
+        t = (e2x * qx + e2y * qy + e2z * qz) * inv
+        if 0.0 < t < best:
+            best = t
+    return best
 
 
 def first_contact_pose(
@@ -106,25 +146,54 @@ def radial_roll_rad(shape: ProbeShape, direction: NDArray[np.float64]) -> float:
     return float(np.arctan2(-(downhill @ z_axis), downhill @ x_axis))
 
 
+class RestSkin:
+    """The skin at rest (the collision surface, or the volume's boundary) for ray queries,
+    its triangles' corners and area normals computed once.
+
+    Args:
+        mesh: the tissue mesh.
+    """
+
+    def __init__(self, mesh: TetMesh) -> None:
+        surface = contact_surface(mesh)
+        collision = mesh.collision_surface
+        vertices = (
+            collision.rest_vertices if collision is not None else surface.positions(mesh.nodes)
+        )
+        self.vertices = vertices
+        self.triangles = surface.triangles
+        a, b, c = (vertices[surface.triangles[:, i]] for i in range(3))
+        self._corner, self._edge1, self._edge2 = a, b - a, c - a
+        self._area_normals = 0.5 * np.cross(b - a, c - a)
+        self._centroids = (a + b + c) / 3.0
+
+    def normal_where_leaving(
+        self, point: NDArray[np.float64], up: NDArray[np.float64] | None = None
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Where the line through ``point`` along ``up`` (default +z) leaves the skin [m],
+        (3,), and the outward unit normal there, area-weighted over the triangles within 8 mm,
+        (3,).
+
+        Raises:
+            TissueInputError: the ray from ``point`` along ``up`` meets no skin.
+        """
+        direction = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=np.float64)
+        origin = np.asarray(point, dtype=np.float64)
+        hit = _first_hit(self._corner, self._edge1, self._edge2, origin, direction)
+        if hit is None:
+            raise TissueInputError(
+                f"no skin above the point {np.round(origin, 4).tolist()} along "
+                f"{np.round(direction, 3).tolist()}; choose a point inside the tissue"
+            )
+        near = np.linalg.norm(self._centroids - hit, axis=1) < _NORMAL_RADIUS_M
+        normal = self._area_normals[near].sum(axis=0)
+        return hit, normal / np.linalg.norm(normal)
+
+
 def skin_normal_above(
     mesh: TetMesh, point: NDArray[np.float64], up: NDArray[np.float64] | None = None
 ) -> NDArray[np.float64]:
     """Outward unit normal of the skin (the collision surface, or the volume's boundary) at
     rest, where the line through ``point`` along ``up`` (default +z) leaves it, area-weighted
-    over the triangles within 8 mm, shape (3,)."""
-    surface = contact_surface(mesh)
-    collision = mesh.collision_surface
-    vertices = collision.rest_vertices if collision is not None else surface.positions(mesh.nodes)
-    triangles = surface.triangles
-    direction = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=np.float64)
-    hit = ray_surface_hit(vertices, triangles, np.asarray(point, dtype=np.float64), direction)
-    if hit is None:
-        raise TissueInputError(
-            f"no skin above the point {np.round(point, 4).tolist()} along "
-            f"{np.round(direction, 3).tolist()}; choose a point inside the tissue"
-        )
-    a, b, c = (vertices[triangles[:, i]] for i in range(3))
-    area_normals = 0.5 * np.cross(b - a, c - a)
-    near = np.linalg.norm((a + b + c) / 3.0 - hit, axis=1) < _NORMAL_RADIUS_M
-    normal = area_normals[near].sum(axis=0)
-    return normal / np.linalg.norm(normal)
+    over the triangles within 8 mm, shape (3,) (:meth:`RestSkin.normal_where_leaving`)."""
+    return RestSkin(mesh).normal_where_leaving(point, up)[1]
