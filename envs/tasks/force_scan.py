@@ -193,7 +193,7 @@ class ForceScanEnv(ProbeEnv):
 
     The tilt is the angle between the probe's pressing axis (y) and the rest skin's inward
     normal at the rest skin's point nearest the probe's centre (:meth:`rest_normal`, from
-    ``tissue.Tissue.touching_pose``).
+    ``tissue.Tissue.rest_skin_normal``).
 
     ``info`` carries ``normal_force_n``, ``contact_force_n``, ``tilt_rad``, ``progress_m``,
     ``path_length_m``, ``skin_length_m``, ``remaining_m`` (along the skin), ``good_share``,
