@@ -29,6 +29,15 @@ def _levels(value: str) -> list[int]:
     return [_level(part) for part in value.split(",") if part.strip()]
 
 
+def _seeds(value: str) -> list[int]:
+    parts = [part.strip() for part in value.split(",") if part.strip()]
+    if not parts or not all(part.isdigit() for part in parts):
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated whole numbers >= 0 (seeds); got {value!r}"
+        )
+    return [int(part) for part in parts]
+
+
 def _floats(value: str) -> list[float]:
     try:
         return [float(part) for part in value.split(",") if part.strip()]
@@ -216,6 +225,17 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     env.add_argument("--levels", type=_levels, default=None, help="default 1363,2539")
     env.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
+    sweep = bench_kinds.add_parser("sweep", help="each method's force along a sweep, against LM")
+    sweep.add_argument(
+        "--seeds", type=_seeds, default=[0, 1, 2, 3, 4], help="comma-separated ForceScan seeds"
+    )
+    sweep.add_argument(
+        "--contact", "--methods", dest="methods", default=None,
+        help="comma-separated methods to replay; default penalty,prescribed,pbd",
+    )  # fmt: skip
+    sweep.add_argument("--mesh", type=_level, default=1363, help="phantom level (default 1363)")
+    sweep.add_argument("--profile", default="robust", help="paper or robust (default robust)")
+    sweep.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
     peer = bench_kinds.add_parser("peer", help="ours against MuJoCo's flex, same phantom")
     peer.add_argument("--levels", type=_levels, default=None, help="default 623,4126,26220")
     peer.add_argument("--sim-seconds", type=float, default=1.0, help="simulated seconds per run")
@@ -357,6 +377,16 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         methods, profiles = _methods_and_profiles(parser, args.methods, args.profiles)
         run_env_benchmark(
             _names(args.ids), methods, profiles, args.levels, args.json, command=args.command_line
+        )
+        return 0
+    if args.command == "bench" and args.bench == "sweep":
+        from agents.bench.sweep import run_sweep_benchmark
+
+        methods, profiles = _methods_and_profiles(parser, args.methods, args.profile)
+        if len(profiles) != 1:
+            parser.error(f"bench sweep takes one --profile; got {args.profile!r}")
+        run_sweep_benchmark(
+            args.seeds, methods, args.mesh, profiles[0], args.json, command=args.command_line
         )
         return 0
     if args.command == "bench" and args.bench == "peer":

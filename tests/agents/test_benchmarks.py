@@ -155,3 +155,22 @@ def test_contact_targets_reach_its_markdown() -> None:
     untargeted = [record("pbd", "paper", 1.0)]
     _annotate_targets(untargeted)
     assert target_rows(untargeted) == []
+
+
+def test_bench_sweep_compares_each_method_with_lm_on_the_same_commands(tmp_path: Path) -> None:
+    json_path = tmp_path / "sweep.json"
+    args = ["bench", "sweep", "--seeds", "0", "--mesh", "623", "--contact", "penalty"]
+    assert main([*args, "--json", str(json_path)]) == 0
+    _check_markdown(json_path.with_suffix(".md"), args)
+    payload = json.loads(json_path.read_text())
+    records = {record["contact"]: record for record in payload["records"]}
+    assert set(records) == {"lm", "penalty"}
+    lm, penalty = records["lm"], records["penalty"]
+    assert lm["rms_error_n"] == 0.0 and lm["max_skin_penetration_mm"] < 1e-3
+    # The replay took LM's commands: the same number of steps unless its episode ended first.
+    assert 0 < penalty["steps_compared"] == min(penalty["steps"], lm["steps"])
+    # Penalty follows LM's force while sliding, not exactly: its springs let the skin in.
+    assert 0.0 < penalty["rms_error_n"] < 0.5 and penalty["max_skin_penetration_mm"] > 0.0
+    assert lm["mean_force_n"] > 0.5  # the sweep pressed
+    with pytest.raises(SystemExit):
+        main(["bench", "sweep", "--seeds", "zero"])
