@@ -12,6 +12,7 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from agents.train.command import add_train_parser, seed_list
 from tissue.errors import ConfigError, TissueInputError
 from tissue.profile import Profile
 
@@ -27,15 +28,6 @@ def _level(value: str) -> int:
 
 def _levels(value: str) -> list[int]:
     return [_level(part) for part in value.split(",") if part.strip()]
-
-
-def _seeds(value: str) -> list[int]:
-    parts = [part.strip() for part in value.split(",") if part.strip()]
-    if not parts or not all(part.isdigit() for part in parts):
-        raise argparse.ArgumentTypeError(
-            f"expected comma-separated whole numbers >= 0 (seeds); got {value!r}"
-        )
-    return [int(part) for part in parts]
 
 
 def _floats(value: str) -> list[float]:
@@ -227,7 +219,7 @@ def _build_parser() -> argparse.ArgumentParser:
     env.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
     sweep = bench_kinds.add_parser("sweep", help="each method's force along a sweep, against LM")
     sweep.add_argument(
-        "--seeds", type=_seeds, default=[0, 1, 2, 3, 4], help="comma-separated ForceScan seeds"
+        "--seeds", type=seed_list, default=[0, 1, 2, 3, 4], help="comma-separated ForceScan seeds"
     )
     sweep.add_argument(
         "--contact", "--methods", dest="methods", default=None,
@@ -240,6 +232,7 @@ def _build_parser() -> argparse.ArgumentParser:
     peer.add_argument("--levels", type=_levels, default=None, help="default 623,4126,26220")
     peer.add_argument("--sim-seconds", type=float, default=1.0, help="simulated seconds per run")
     peer.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
+    add_train_parser(commands)
     return parser
 
 
@@ -321,6 +314,11 @@ def _kept(args: argparse.Namespace) -> str:
             f"every cell finished so far is kept in {args.out}/results.jsonl; run the same "
             "command again to resume"
         )
+    if args.command == "train":
+        return (
+            "the checkpoints written so far are kept in the --out folder; run the same command "
+            "again to resume from the latest"
+        )
     return "nothing was written"
 
 
@@ -379,6 +377,10 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             _names(args.ids), methods, profiles, args.levels, args.json, command=args.command_line
         )
         return 0
+    if args.command == "train":
+        from agents.train.command import run_train
+
+        return run_train(args)
     if args.command == "bench" and args.bench == "sweep":
         from agents.bench.sweep import run_sweep_benchmark
 

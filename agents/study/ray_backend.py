@@ -17,12 +17,12 @@ def _call(function: Callable[..., Any], *args: Any) -> Any:
     return function(*args)
 
 
-def ray_submitter(address: str, workers: int) -> Callable[..., Future[Any]]:
+def ray_submitter(address: str, workers: int, cpus_per_task: int = 1) -> Callable[..., Future[Any]]:
     """A ``submit(function, *args) -> Future`` running tasks on the cluster at ``address``.
 
     ``address`` is a Ray address (``ray://host:10001``, ``host:6379``), ``auto`` (the cluster
     this machine belongs to) or ``local`` (start a private Ray on this machine with
-    ``workers`` CPUs).
+    ``workers`` CPUs). Each task asks for ``cpus_per_task`` CPUs.
     """
     try:
         import ray
@@ -38,7 +38,7 @@ def ray_submitter(address: str, workers: int) -> Callable[..., Future[Any]]:
                 ray.init(address=address, log_to_driver=False)
             except (ConnectionError, RuntimeError, ValueError) as error:
                 raise ConfigError(f"--ray {address}: cannot connect ({error})") from None
-    remote = ray.remote(num_cpus=1)(_call)
+    remote = ray.remote(num_cpus=cpus_per_task)(_call)
 
     def submit(function: Callable[..., Any], *args: Any) -> Future[Any]:
         return remote.remote(function, *args).future()

@@ -1,0 +1,359 @@
+"""``probegym train``: stable-baselines3 on a probegym environment, resumable.
+
+One run: ``n_envs`` environments in worker processes (SB3's ``SubprocVecEnv``, started with
+``forkserver``: numba's OpenMP layer makes ``fork`` fatal once a tissue is built; one env runs
+in-process), each under a ``Monitor`` (its CSV in ``monitor/``, success included), the
+observations normalised (``VecNormalize``, the image left alone) unless asked otherwise, an
+evaluation every ``eval_every`` steps on its own env and seeds (SB3's ``EvalCallback``: mean
+return and success rate, ``eval/evaluations.npz``, the best model), checkpoints with their
+normalisation statistics every ``checkpoint_every`` steps, TensorBoard event files in ``tb/``
+and a progress bar. ``config.json`` records everything the run was made from (see
+:mod:`agents.train.artifacts` for the folder's layout).
+
+Rerun with the same ``--out`` and it resumes from the latest checkpoint (a different
+configuration in that folder is refused: choose another folder). Before the workers start,
+the environment is built and stepped once in this process, so that the compiled kernels,
+the phantom mesh and PBD's calibration are on disk and each worker loads them (each would
+otherwise compile for about 20 s).
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents.outputs import write_json
+from agents.train.artifacts import (
+    CHECKPOINT_PREFIX,
+    CHECKPOINTS,
+    CONFIG_FILE,
+    MODEL_FILE,
+    NORMALIZE_FILE,
+    checkpoint_normalization,
+    latest_checkpoint,
+)
+from tissue.errors import ConfigError
+
+#: Algorithms ``--algo`` takes.
+ALGORITHMS = ("ppo", "sac")
+
+#: Hyper-parameters per algorithm (SB3's names); anything not here is SB3's default.
+#: PPO: 1,024 steps per env per update (four BreastCompress episodes), minibatches of 256,
+#: a small network; SAC: SB3's defaults with a 100k buffer and learning from 1,000 steps.
+DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
+    "ppo": {
+        "n_steps": 1024,
+        "batch_size": 256,
+        "n_epochs": 10,
+        "learning_rate": 3e-4,
+        "gamma": 0.99,
+        "gae_lambda": 0.95,
+        "clip_range": 0.2,
+        "ent_coef": 0.0,
+        "policy_kwargs": {"net_arch": [128, 128]},
+    },
+    "sac": {
+        "buffer_size": 100_000,
+        "learning_starts": 1_000,
+        "batch_size": 256,
+        "learning_rate": 3e-4,
+        "gamma": 0.99,
+        "policy_kwargs": {"net_arch": [256, 256]},
+    },
+}
+
+
+class TrainError(ConfigError):
+    """A training request that cannot run: the message names the value and the fix."""
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """One training run.
+
+    Attributes:
+        env_id: a registered probegym environment.
+        out: the run's folder.
+        algo: ``ppo`` or ``sac``.
+        env_kwargs: keyword arguments of ``gymnasium.make`` (contact, mesh, profile, ...).
+        steps: environment steps to train for, in all envs together.
+        n_envs: environments stepping in parallel (worker processes when > 1).
+        seed: seeds the algorithm and the training envs (env i: seed + i); evaluation uses
+            seeds from seed + 10,000.
+        eval_every: environment steps between evaluations.
+        eval_episodes: episodes per evaluation.
+        checkpoint_every: environment steps between checkpoints.
+        normalize: normalise observations (running mean and variance, the image excepted).
+        hyperparameters: the algorithm's (merged over :data:`DEFAULT_HYPERPARAMETERS`).
+        progress: show a progress bar.
+    """
+
+    env_id: str
+    out: Path
+    algo: str = "ppo"
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+    steps: int = 300_000
+    n_envs: int = 2
+    seed: int = 0
+    eval_every: int = 10_000
+    eval_episodes: int = 20
+    checkpoint_every: int = 20_000
+    normalize: bool = True
+    hyperparameters: dict[str, Any] = field(default_factory=dict)
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        import envs
+
+        if self.env_id not in envs.ENV_IDS:
+            raise TrainError(
+                f"unknown environment {self.env_id!r}; choose one of {', '.join(envs.ENV_IDS)}"
+            )
+        if self.algo not in ALGORITHMS:
+            raise TrainError(f"unknown --algo {self.algo!r}; choose one of {', '.join(ALGORITHMS)}")
+        for name in ("steps", "n_envs", "eval_every", "eval_episodes", "checkpoint_every"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise TrainError(f"{name} must be a whole number >= 1; got {value!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise TrainError(f"seed must be a whole number >= 0; got {self.seed!r}")
+        if Path(self.out).exists() and not Path(self.out).is_dir():
+            raise TrainError(f"--out {self.out} is a file; give a folder")
+
+    def resolved_hyperparameters(self) -> dict[str, Any]:
+        """The algorithm's hyper-parameters: the defaults, then this run's."""
+        merged = dict(DEFAULT_HYPERPARAMETERS[self.algo])
+        merged.update(self.hyperparameters)
+        if self.algo == "ppo":
+            # A minibatch no larger than one update's rollout.
+            rollout = int(merged["n_steps"]) * self.n_envs
+            merged["batch_size"] = min(int(merged["batch_size"]), rollout)
+        return merged
+
+    def identity(self) -> dict[str, Any]:
+        """What a resumed run must share with the folder's (the step budget may grow)."""
+        return {
+            "env_id": self.env_id,
+            "algo": self.algo,
+            "env_kwargs": _plain(self.env_kwargs),
+            "n_envs": self.n_envs,
+            "seed": self.seed,
+            "normalize": self.normalize,
+            "hyperparameters": _plain(self.resolved_hyperparameters()),
+        }
+
+
+def train(settings: TrainSettings, command: str | None = None, log: Any = print) -> Path:
+    """Train (or resume) and save; returns the final model's path."""
+    from stable_baselines3 import PPO, SAC
+    from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
+
+    import torch
+
+    # One thread for the networks: the env workers have the cores, and the same updates
+    # come out in any process (a Ray worker, here) whatever its thread count.
+    torch.set_num_threads(1)
+    out = Path(settings.out)
+    out.mkdir(parents=True, exist_ok=True)
+    previous = _previous_identity(out)
+    if previous is not None and previous != settings.identity():
+        changed = sorted(k for k in previous if previous[k] != settings.identity().get(k))
+        raise TrainError(
+            f"{out} holds a run with other settings ({', '.join(changed)} differ): resume it "
+            "with the same options, or choose another --out"
+        )
+    resume = latest_checkpoint(out)
+    final = out / MODEL_FILE
+    if resume is not None and resume[1] >= settings.steps and final.is_file():
+        log(f"{out} already holds a model trained for {resume[1]:,} steps; nothing to do")
+        return final
+
+    # The env once in this process: kernels compiled and mesh / calibration cached on disk
+    # before any worker starts.
+    eval_env = make_vec_env(
+        f"envs:{settings.env_id}",
+        n_envs=1,
+        seed=settings.seed + 10_000,
+        env_kwargs=settings.env_kwargs,
+        vec_env_cls=DummyVecEnv,
+    )
+    eval_env.reset()
+    eval_env.step(np.zeros((1, 6), dtype=np.float32))
+    vec_cls = SubprocVecEnv if settings.n_envs > 1 else DummyVecEnv
+    vec_kwargs = {"start_method": "forkserver"} if settings.n_envs > 1 else None
+    venv = make_vec_env(
+        f"envs:{settings.env_id}",
+        n_envs=settings.n_envs,
+        seed=settings.seed,
+        env_kwargs=settings.env_kwargs,
+        monitor_dir=str(out / "monitor"),
+        monitor_kwargs={"info_keywords": ("is_success",)},
+        vec_env_cls=vec_cls,
+        vec_env_kwargs=vec_kwargs,
+    )
+    if settings.normalize:
+        keys = [k for k in venv.observation_space.spaces if k != "image"]  # type: ignore[attr-defined]
+        if resume is not None:
+            venv = VecNormalize.load(str(checkpoint_normalization(out, resume[1])), venv)
+        else:
+            venv = VecNormalize(venv, norm_obs=True, norm_reward=False, norm_obs_keys=keys)
+        eval_env = VecNormalize(
+            eval_env, norm_obs=True, norm_reward=False, norm_obs_keys=keys, training=False
+        )
+    algorithm: Any = {"ppo": PPO, "sac": SAC}[settings.algo]
+    hyper = settings.resolved_hyperparameters()
+    if resume is not None:
+        log(f"resuming {out} from its checkpoint at {resume[1]:,} steps")
+        model = algorithm.load(resume[0], env=venv, device="cpu", tensorboard_log=str(out / "tb"))
+    else:
+        model = algorithm(
+            "MultiInputPolicy",
+            venv,
+            seed=settings.seed,
+            device="cpu",
+            verbose=0,
+            tensorboard_log=str(out / "tb"),
+            **hyper,
+        )
+    _write_config(out, settings, command)
+    per_env = max(1, settings.n_envs)
+    callbacks = CallbackList(
+        [
+            CheckpointCallback(
+                save_freq=max(1, settings.checkpoint_every // per_env),
+                save_path=str(out / CHECKPOINTS),
+                name_prefix=CHECKPOINT_PREFIX,
+                save_vecnormalize=settings.normalize,
+            ),
+            EvalCallback(
+                eval_env,
+                n_eval_episodes=settings.eval_episodes,
+                eval_freq=max(1, settings.eval_every // per_env),
+                log_path=str(out / "eval"),
+                best_model_save_path=str(out / "eval"),
+                deterministic=True,
+                verbose=0,
+            ),
+        ]
+    )
+    if resume is not None:
+        log_file = out / "eval" / "evaluations.npz"
+        _continue_evaluation_log(callbacks.callbacks[1], log_file, resume[1])
+    remaining = settings.steps - (0 if resume is None else resume[1])
+    started = time.perf_counter()
+    model.learn(
+        total_timesteps=remaining,
+        callback=callbacks,
+        progress_bar=settings.progress and _progress_bar_available(),
+        reset_num_timesteps=resume is None,
+        tb_log_name=settings.algo,
+    )
+    model.save(final)
+    if settings.normalize:
+        venv.save(str(out / NORMALIZE_FILE))  # type: ignore[attr-defined]
+    # The last checkpoint too, so that a rerun knows the budget was reached.
+    model.save(out / CHECKPOINTS / f"{CHECKPOINT_PREFIX}_{model.num_timesteps}_steps.zip")
+    if settings.normalize:
+        stats = checkpoint_normalization(out, model.num_timesteps)
+        venv.save(str(stats))  # type: ignore[attr-defined]
+    venv.close()
+    eval_env.close()
+    log(
+        f"trained {settings.env_id} with {settings.algo} for {model.num_timesteps:,} steps in "
+        f"{time.perf_counter() - started:.0f} s: {final}"
+    )
+    return final
+
+
+def _continue_evaluation_log(callback: Any, log: Path, up_to: int) -> None:
+    """Give a resumed run's EvalCallback the evaluations made up to its checkpoint, so that
+    ``evaluations.npz`` keeps the whole learning curve (SB3 starts it afresh)."""
+    if not log.is_file():
+        return
+    data = np.load(log)
+    keep = [i for i, steps in enumerate(data["timesteps"]) if steps <= up_to]
+    callback.evaluations_timesteps = [int(data["timesteps"][i]) for i in keep]
+    callback.evaluations_results = [list(data["results"][i]) for i in keep]
+    callback.evaluations_length = [list(data["ep_lengths"][i]) for i in keep]
+    if "successes" in data:
+        callback.evaluations_successes = [list(data["successes"][i]) for i in keep]
+
+
+def _progress_bar_available() -> bool:
+    try:
+        import rich  # noqa: F401
+        import tqdm  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _previous_identity(out: Path) -> dict[str, Any] | None:
+    path = out / CONFIG_FILE
+    if not path.is_file():
+        return None
+    stored = json.loads(path.read_text())
+    identity = stored.get("identity")
+    return identity if isinstance(identity, dict) else None
+
+
+def _write_config(out: Path, settings: TrainSettings, command: str | None) -> None:
+    """``config.json``: the identity a resumed run must match, and everything else."""
+    import gymnasium
+    import mujoco
+    import stable_baselines3
+    import torch
+
+    from agents.bench.report import code_revision
+
+    try:
+        from importlib.metadata import version
+
+        probegym_version = version("probegym")
+    except Exception:  # noqa: BLE001 - not installed as a distribution
+        probegym_version = "unknown"
+    payload = {
+        **settings.identity(),
+        "steps": settings.steps,
+        "eval_every": settings.eval_every,
+        "eval_episodes": settings.eval_episodes,
+        "eval_seed": settings.seed + 10_000,
+        "checkpoint_every": settings.checkpoint_every,
+        "identity": settings.identity(),
+        "versions": {
+            "probegym": probegym_version,
+            "python": platform.python_version(),
+            "stable_baselines3": stable_baselines3.__version__,
+            "torch": torch.__version__,
+            "gymnasium": gymnasium.__version__,
+            "mujoco": mujoco.__version__,
+            "numpy": np.__version__,
+        },
+        "revision": code_revision(),
+        "command": command or "python " + " ".join(sys.argv),
+        "written": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "settings": _plain(asdict(settings)),
+    }
+    write_json(payload, out / CONFIG_FILE, indent=1)
+
+
+def _plain(value: Any) -> Any:
+    """JSON-ready: paths as strings, tuples as lists, dataclasses as dicts."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    if hasattr(value, "__dataclass_fields__"):
+        return _plain(asdict(value))
+    return value

@@ -1,0 +1,138 @@
+"""``probegym train``: a resumable SB3 run with its configuration, checkpoints, evaluations,
+Monitor CSVs and TensorBoard logs; the trained policy loads back and acts; many runs on Ray
+match the same runs here."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agents.cli import main
+
+ENV_ID = "probegym/BreastCompress-v0"
+RL_EXTRA = "training needs the rl extra: pip install -e '.[rl]' (a CPU torch first)"
+
+
+def _train(out: Path, *extra: str) -> int:
+    return main(
+        [
+            "train", ENV_ID, "--mesh", "623", "--n-envs", "2", "--eval-every", "1024",
+            "--eval-episodes", "2", "--checkpoint-every", "1024", "--no-progress",
+            "--out", str(out), *extra,
+        ]
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["probegym/Nope-v0"], "unknown environment 'probegym/Nope-v0'; choose one of"),
+        ([ENV_ID, "--algo", "dqn"], "--algo 'dqn': choose from ppo, sac"),
+        ([ENV_ID, "--seed", "1", "--seeds", "1,2"], "give --seed or --seeds, not both"),
+    ],
+)
+def test_bad_requests_are_named(args, message, tmp_path: Path, capsys) -> None:
+    assert main(["train", *args, "--out", str(tmp_path / "run")]) == 2
+    assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("option", [["--steps", "0"], ["--steps", "lots"], ["--seeds", "a,b"]])
+def test_bad_numbers_are_refused_before_any_work(option, capsys) -> None:
+    with pytest.raises(SystemExit):
+        main(["train", ENV_ID, *option])
+    assert "expected" in capsys.readouterr().err
+
+
+def test_an_out_that_is_a_file_is_refused(tmp_path: Path, capsys) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert main(["train", ENV_ID, "--out", str(blocker)]) == 2
+    assert "is a file; give a folder" in capsys.readouterr().err
+
+
+def test_a_path_that_is_no_model_is_refused(tmp_path: Path) -> None:
+    from agents.train import TrainedPolicyError, load_policy
+
+    with pytest.raises(TrainedPolicyError, match="holds no model.zip and no checkpoint"):
+        load_policy(tmp_path)
+    with pytest.raises(TrainedPolicyError, match="neither a probegym train folder"):
+        load_policy(tmp_path / "missing.zip")
+
+
+@pytest.mark.train
+def test_train_saves_everything_loads_back_and_resumes(tmp_path: Path) -> None:
+    pytest.importorskip("stable_baselines3", reason=RL_EXTRA)
+    import gymnasium as gym
+
+    import envs  # noqa: F401 - registers the ids
+    from agents.train import load_policy
+
+    out = tmp_path / "run"
+    assert _train(out, "--steps", "2048") == 0
+    config = json.loads((out / "config.json").read_text())
+    assert config["env_id"] == ENV_ID and config["algo"] == "ppo"
+    assert config["env_kwargs"] == {"contact": "lm", "mesh": 623, "profile": "robust"}
+    assert config["hyperparameters"]["n_steps"] == 1024 and config["revision"]
+    assert {"stable_baselines3", "torch", "mujoco", "gymnasium"} <= set(config["versions"])
+    for name in ("model.zip", "vecnormalize.pkl", "eval/evaluations.npz", "eval/best_model.zip"):
+        assert (out / name).is_file(), name
+    assert (out / "checkpoints" / "model_2048_steps.zip").is_file()
+    assert (out / "checkpoints" / "model_vecnormalize_2048_steps.pkl").is_file()
+    assert list((out / "tb").rglob("events.out.tfevents.*"))
+    with (out / "monitor" / "0.monitor.csv").open() as handle:
+        handle.readline()  # SB3's JSON header line
+        rows = list(csv.DictReader(handle))
+    assert rows and {"r", "l", "t", "is_success"} <= set(rows[0])
+    # The policy loads back with its normalisation and acts in a fresh env.
+    policy = load_policy(out)
+    assert policy.normalizer is not None and not policy.normalizer.training
+    env = gym.make(ENV_ID, mesh=623)
+    observation, _ = env.reset(seed=3)
+    for _ in range(5):
+        action = policy(observation)
+        assert action.shape == (6,) and np.all(np.abs(action) <= 1.0)
+        observation, *_ = env.step(action)
+    env.close()
+    # Rerun with a larger budget: it resumes, and the learning curve keeps its start.
+    assert _train(out, "--steps", "3072") == 0
+    log = np.load(out / "eval" / "evaluations.npz")
+    assert log["timesteps"].tolist() == [1024, 2048, 3072]
+    assert "successes" in log
+    assert (out / "checkpoints" / "model_3072_steps.zip").is_file()
+    # Other settings in the same folder are refused.
+    assert _train(out, "--steps", "4096", "--contact", "penalty") == 2
+
+
+@pytest.mark.train
+def test_runs_on_ray_match_the_same_runs_here(tmp_path: Path) -> None:
+    pytest.importorskip("stable_baselines3", reason=RL_EXTRA)
+    pytest.importorskip("ray", reason="--ray needs the ray extra: pip install -e '.[ray]'")
+    import ray
+    from stable_baselines3 import PPO
+
+    common = [
+        "train", ENV_ID, "--mesh", "623", "--n-envs", "1", "--steps", "512", "--eval-every",
+        "512", "--eval-episodes", "1", "--checkpoint-every", "512", "--no-progress",
+    ]  # fmt: skip
+    try:
+        assert (
+            main([*common, "--seeds", "0,1", "--ray", "local", "--out", str(tmp_path / "ray")]) == 0
+        )
+    finally:
+        ray.shutdown()
+    summary = json.loads((tmp_path / "ray" / "summary.json").read_text())
+    assert [(run["seed"], run["contact"]) for run in summary["runs"]] == [(0, "lm"), (1, "lm")]
+    for seed in (0, 1):
+        assert main([*common, "--seed", str(seed), "--out", str(tmp_path / f"here{seed}")]) == 0
+        there = PPO.load(tmp_path / "ray" / f"ppo-lm-seed{seed}" / "model.zip", device="cpu")
+        here = PPO.load(tmp_path / f"here{seed}" / "model.zip", device="cpu")
+        for name, value in here.policy.state_dict().items():
+            assert np.array_equal(value.numpy(), there.policy.state_dict()[name].numpy()), name
+    # Two seeds learn two different policies.
+    a = PPO.load(tmp_path / "here0" / "model.zip", device="cpu").policy.state_dict()
+    b = PPO.load(tmp_path / "here1" / "model.zip", device="cpu").policy.state_dict()
+    assert any(not np.array_equal(a[k].numpy(), b[k].numpy()) for k in a)
