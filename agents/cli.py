@@ -12,6 +12,7 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from agents.evaluation import add_evaluate_parser, run_evaluate
 from agents.train.command import add_train_parser, seed_list
 from tissue.errors import ConfigError, TissueInputError
 from tissue.profile import Profile
@@ -233,6 +234,7 @@ def _build_parser() -> argparse.ArgumentParser:
     peer.add_argument("--sim-seconds", type=float, default=1.0, help="simulated seconds per run")
     peer.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
     add_train_parser(commands)
+    add_evaluate_parser(commands)
     return parser
 
 
@@ -314,6 +316,8 @@ def _kept(args: argparse.Namespace) -> str:
             f"every cell finished so far is kept in {args.out}/results.jsonl; run the same "
             "command again to resume"
         )
+    if args.command == "evaluate":
+        return run_evaluate(args)
     if args.command == "train":
         return (
             "the checkpoints written so far are kept in the --out folder; run the same command "
@@ -377,6 +381,8 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             _names(args.ids), methods, profiles, args.levels, args.json, command=args.command_line
         )
         return 0
+    if args.command == "evaluate":
+        return run_evaluate(args)
     if args.command == "train":
         from agents.train.command import run_train
 

@@ -152,12 +152,11 @@ class TrainSettings:
 
 def train(settings: TrainSettings, command: str | None = None, log: Any = print) -> Path:
     """Train (or resume) and save; returns the final model's path."""
+    import torch
     from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecNormalize
-
-    import torch
 
     # One thread for the networks: the env workers have the cores, and the same updates
     # come out in any process (a Ray worker, here) whatever its thread count.
