@@ -316,8 +316,6 @@ def _kept(args: argparse.Namespace) -> str:
             f"every cell finished so far is kept in {args.out}/results.jsonl; run the same "
             "command again to resume"
         )
-    if args.command == "evaluate":
-        return run_evaluate(args)
     if args.command == "train":
         return (
             "the checkpoints written so far are kept in the --out folder; run the same command "
@@ -381,6 +379,8 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             _names(args.ids), methods, profiles, args.levels, args.json, command=args.command_line
         )
         return 0
+    if args.command == "evaluate":
+        return run_evaluate(args)
     if args.command == "evaluate":
         return run_evaluate(args)
     if args.command == "train":

@@ -25,6 +25,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from tissue.errors import ConfigError
+
 CONFIG_FILE = "config.json"
 MODEL_FILE = "model.zip"
 NORMALIZE_FILE = "vecnormalize.pkl"
@@ -32,7 +34,7 @@ CHECKPOINTS = "checkpoints"
 CHECKPOINT_PREFIX = "model"
 
 
-class TrainedPolicyError(ValueError):
+class TrainedPolicyError(ConfigError):
     """A path that is not a training folder or model: the message says what was expected."""
 
 
@@ -82,9 +84,10 @@ def checkpoint_steps(checkpoint: Path) -> int | None:
     return int(middle)
 
 
-def checkpoint_normalization(checkpoint: Path, steps: int) -> Path:
-    """The normalisation statistics saved with a checkpoint (SB3's CheckpointCallback name)."""
-    return checkpoint.parent / f"{CHECKPOINT_PREFIX}_vecnormalize_{steps}_steps.pkl"
+def checkpoint_normalization(folder: Path, steps: int) -> Path:
+    """The normalisation statistics saved with the checkpoint at ``steps`` in a training
+    folder (SB3's CheckpointCallback name)."""
+    return folder / CHECKPOINTS / f"{CHECKPOINT_PREFIX}_vecnormalize_{steps}_steps.pkl"
 
 
 def read_config(folder: Path) -> dict[str, Any]:
@@ -145,7 +148,7 @@ def load_policy(path: str | Path, deterministic: bool = True) -> TrainedPolicy:
         stats = folder / NORMALIZE_FILE
         steps = checkpoint_steps(model_path)
         if steps is not None:
-            stats = checkpoint_normalization(model_path, steps)
+            stats = checkpoint_normalization(folder, steps)
         if not stats.is_file():
             raise TrainedPolicyError(
                 f"{folder} was trained with observation normalisation but {stats.name} is "
