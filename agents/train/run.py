@@ -57,7 +57,9 @@ DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
         "gae_lambda": 0.95,
         "clip_range": 0.2,
         "ent_coef": 0.0,
-        "policy_kwargs": {"net_arch": [128, 128]},
+        # A narrower start than SB3's std of 1: an action of 1 moves the probe 5 mm a step,
+        # and holding a lesion within 1 mm of its target needs far less than that.
+        "policy_kwargs": {"net_arch": [128, 128], "log_std_init": -1.0},
     },
     "sac": {
         "buffer_size": 100_000,
@@ -90,7 +92,10 @@ class TrainSettings:
         eval_every: environment steps between evaluations.
         eval_episodes: episodes per evaluation.
         checkpoint_every: environment steps between checkpoints.
-        normalize: normalise observations (running mean and variance, the image excepted).
+        normalize: normalise observations (running mean and variance, the image excepted)
+            and, for PPO's training, rewards (by the running spread of the discounted return:
+            a failure's large penalty then does not swamp the value function); evaluations
+            report raw returns.
         hyperparameters: the algorithm's (merged over :data:`DEFAULT_HYPERPARAMETERS`).
         progress: show a progress bar.
     """
@@ -204,7 +209,9 @@ def train(settings: TrainSettings, command: str | None = None, log: Any = print)
         if resume is not None:
             venv = VecNormalize.load(str(checkpoint_normalization(out, resume[1])), venv)
         else:
-            venv = VecNormalize(venv, norm_obs=True, norm_reward=False, norm_obs_keys=keys)
+            # Rewards too for PPO (on-policy); SAC's replay buffer would keep stale scales.
+            on_policy = settings.algo == "ppo"
+            venv = VecNormalize(venv, norm_obs=True, norm_reward=on_policy, norm_obs_keys=keys)
         eval_env = VecNormalize(
             eval_env, norm_obs=True, norm_reward=False, norm_obs_keys=keys, training=False
         )
