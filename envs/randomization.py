@@ -73,23 +73,9 @@ class DomainRandomization:
     rotation_noise_rad: float = 0.005
 
     def __post_init__(self) -> None:
-        pair = number_pair(self.tissue_stiffness_scale)
-        low, high = pair if pair is not None else (math.nan, math.nan)
-        if not 0.05 <= low <= high <= 20.0:
-            raise EnvConfigError(
-                f"tissue_stiffness_scale must be (low, high) with 0.05 <= low <= high <= 20; "
-                f"got {self.tissue_stiffness_scale!r}"
-            )
-        object.__setattr__(self, "tissue_stiffness_scale", (low, high))
+        self._check_range("tissue_stiffness_scale", 0.05, 20.0)
         if self.lesion_stiffness_ratio is not None:
-            pair = number_pair(self.lesion_stiffness_ratio)
-            low, high = pair if pair is not None else (math.nan, math.nan)
-            if not 0.1 <= low <= high <= 100.0:
-                raise EnvConfigError(
-                    f"lesion_stiffness_ratio must be (low, high) with 0.1 <= low <= high <= "
-                    f"100, or None; got {self.lesion_stiffness_ratio!r}"
-                )
-            object.__setattr__(self, "lesion_stiffness_ratio", (low, high))
+            self._check_range("lesion_stiffness_ratio", 0.1, 100.0, " or None")
         for f in fields(self)[2:]:
             value = getattr(self, f.name)
             if not finite_number(value) or value < 0.0:
@@ -102,6 +88,18 @@ class DomainRandomization:
                 f"lesion_jitter_m must be at most 0.01 m (a lesion's room in the mesh is a few "
                 f"millimetres); got {self.lesion_jitter_m!r}"
             )
+
+    def _check_range(self, name: str, least: float, most: float, alternative: str = "") -> None:
+        """Field ``name`` as (low, high) with least <= low <= high <= most, stored as floats."""
+        value = getattr(self, name)
+        pair = number_pair(value)
+        low, high = pair if pair is not None else (math.nan, math.nan)
+        if not least <= low <= high <= most:
+            raise EnvConfigError(
+                f"{name} must be (low, high) with {least:g} <= low <= high <= {most:g}"
+                f"{alternative}; got {value!r}"
+            )
+        object.__setattr__(self, name, (low, high))
 
     @classmethod
     def parse(cls, value: Any) -> DomainRandomization | None:

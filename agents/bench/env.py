@@ -26,7 +26,6 @@ steps/s for prescribed and penalty and 250 for LM at level 1363, 200 for the thr
 from __future__ import annotations
 
 import os
-import platform
 import time
 from pathlib import Path
 from typing import Any
@@ -35,8 +34,7 @@ import mujoco
 import numpy as np
 
 from agents.bench.contact import threading_environment
-from agents.bench.report import BenchRecord, MarkdownTable, code_revision
-from agents.outputs import write_json
+from agents.bench.report import BenchRecord, MarkdownTable, write_records
 
 DEFAULT_METHODS = ("lm", "penalty", "prescribed", "pbd")
 DEFAULT_PROFILES = ("robust",)
@@ -217,14 +215,4 @@ def _print(record: dict[str, Any]) -> None:
 
 
 def _write(path: Path, records: list[dict[str, Any]], started: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    payload = {
-        "benchmark": "env",
-        "started": started,
-        "machine": platform.node(),
-        "revision": code_revision(),
-        "cpu_count": os.cpu_count(),
-        "threads": threading_environment(),
-        "records": records,
-    }
-    write_json(payload, path, indent=1)
+    write_records(path, "env", started, records, threads=threading_environment())

@@ -18,8 +18,9 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
-from agents.outputs import readable
+from agents.outputs import readable, write_json
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -99,3 +100,21 @@ class BenchRecord:
         path.write_text("\n".join(head) + "\n" + body + (f"\n{notes}\n" if notes else ""))
         readable(path)
         return path
+
+
+def write_records(
+    path: Path, benchmark: str, started: str, records: list[Any], **extra: Any
+) -> None:
+    """A benchmark's JSON: its name, start, machine, revision and cores, ``extra`` and the
+    records so far (rewritten as a run goes, so an interrupted run keeps what it measured)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "benchmark": benchmark,
+        "started": started,
+        "machine": platform.node(),
+        "revision": code_revision(),
+        "cpu_count": os.cpu_count(),
+        **extra,
+        "records": records,
+    }
+    write_json(payload, path, indent=1)

@@ -20,16 +20,13 @@ probe slides, and what that saving buys in time.
 
 from __future__ import annotations
 
-import os
-import platform
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from agents.bench.report import BenchRecord, MarkdownTable, code_revision
-from agents.outputs import write_json
+from agents.bench.report import BenchRecord, MarkdownTable, write_records
 
 ENV_ID = "probegym/ForceScan-v0"
 DEFAULT_SEEDS = (0, 1, 2, 3, 4)
@@ -161,15 +158,4 @@ def _print(record: dict[str, Any]) -> None:
 def _write(
     path: Path, records: list[dict[str, Any]], started: str, mesh: int, profile: str
 ) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    payload = {
-        "benchmark": "sweep",
-        "started": started,
-        "machine": platform.node(),
-        "revision": code_revision(),
-        "cpu_count": os.cpu_count(),
-        "mesh": mesh,
-        "profile": profile,
-        "records": records,
-    }
-    write_json(payload, path, indent=1)
+    write_records(path, "sweep", started, records, mesh=mesh, profile=profile)

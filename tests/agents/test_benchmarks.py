@@ -126,7 +126,10 @@ def test_bench_env_reports_steps_per_second_and_where_the_time_goes(tmp_path: Pa
     for record in payload["records"]:
         assert record["tets"] == 571 and record["statuses"] == {"ok": record["steps"]}
         parts = ("robot_ms", "controller_ms", "tissue_ms", "observation_ms")
-        assert all(record[part] > 0.0 for part in parts)
+        # The robot's share is the substeps' time less the controller's, tens of
+        # microseconds: on a loaded machine its median may round to zero.
+        assert all(record[part] >= 0.0 for part in parts)
+        assert record["tissue_ms"] > 0.0 and record["controller_ms"] > 0.0
         assert sum(record[part] for part in parts) <= record["step_wall_ms"] * 1.05
         assert record["steps_per_s"] > 0.0 and record["reset_ms"] > 0.0
         assert 0.0 < record["image_ms"] < 1e3  # a B-mode frame, timed apart from the steps
