@@ -140,13 +140,15 @@ def test_the_scripted_policy_sweeps_the_path(contact: str) -> None:
         assert info["remaining_m"] <= 0.003
         assert 1.0 <= info["normal_force_n"] <= 3.0
         assert info["good_share"] >= 0.9
-        assert info["progress_m"] > 0.8 * info["path_length_m"]
+        # The episode ends once within 3 mm of the end (up to a tenth of a 30 mm path), the
+        # pressed centre below the curved skin: measured 0.78-0.88 of the chord, seeds 0-9.
+        assert info["progress_m"] > 0.75 * info["path_length_m"]
 
 
 @pytest.mark.slow
 def test_the_scripted_policy_with_prescribed_displacement() -> None:
-    """Prescribed displacement (robust: online, sliding node set), three seeds (measured 9
-    of 10 seeds; slow: 4 s here, kept out of the fast run's 20 s)."""
+    """Prescribed displacement (robust: online, sliding node set), three seeds (measured 10
+    of 10 on seeds 0-9; slow: 4 s here, kept out of the fast run's 20 s)."""
     env = _make("prescribed", mesh=POLICY_MESH)
     for seed in (0, 1, 2):
         info, _ = _scan(env, seed)
@@ -156,11 +158,11 @@ def test_the_scripted_policy_with_prescribed_displacement() -> None:
 
 @pytest.mark.slow
 def test_the_scripted_policy_with_pbd() -> None:
-    """PBD succeeds on fewer seeds (measured 4 of 10: seeds 2-5; the others overshoot the
-    force band, most of them past the 10 N limit): a regression check on three of those
-    that succeed, and the skin penetration reported (slow: 5 s here, 60 substeps)."""
+    """PBD (measured 10 of 10 on seeds 0-9; seeds 0 and 1 overshot the force past the
+    10 N limit before the policy kept its own copy of the impedance target): three seeds,
+    and the skin penetration reported (slow: 5 s here, 60 substeps)."""
     env = _make("pbd", mesh=POLICY_MESH)
-    for seed in (2, 4, 5):
+    for seed in (0, 1, 2):
         info, _ = _scan(env, seed)
         assert info["is_success"], (seed, info)
         assert 0.0 <= info["skin_penetration_m"] < 0.002
