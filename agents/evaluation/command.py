@@ -27,8 +27,8 @@ def add_evaluate_parser(subparsers: Any) -> argparse.ArgumentParser:
     parser.add_argument(
         "--policy",
         required=True,
-        help="'scripted' (the task's scripted policy) or PATH: a probegym train folder or a "
-        "model .zip in one",
+        help="'scripted' (the task's scripted policy), 'random' (uniform actions, the chance "
+        "baseline) or PATH: a probegym train folder or a model .zip in one",
     )
     parser.add_argument("--episodes", type=int, default=10, help="episodes to run (default 10)")
     parser.add_argument("--seed", type=int, default=0, help="episode k's seed is SEED + k")

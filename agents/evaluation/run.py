@@ -58,6 +58,7 @@ OUTPUT_FILES = (
 )
 
 SCRIPTED = "scripted"
+RANDOM = "random"
 
 Policy = Callable[[dict[str, Any]], Any]
 
@@ -88,12 +89,14 @@ def check_counts(episodes: Any, seed: Any) -> None:
 
 
 def resolve_policy(
-    env_id: str, policy: Any, env_kwargs: dict[str, Any] | None
+    env_id: str, policy: Any, env_kwargs: dict[str, Any] | None, seed: int = 0
 ) -> tuple[str, Callable[[], Policy], dict[str, Any]]:
     """The policy's label, a factory giving the policy for an episode, and the env's
     keyword arguments.
 
-    ``"scripted"``: the task's scripted policy, a fresh one per episode. A path: a trained
+    ``"scripted"``: the task's scripted policy, a fresh one per episode. ``"random"``:
+    uniform actions from one generator seeded with ``seed`` (the chance baseline). A path: a
+    trained
     policy (:func:`agents.train.load_policy`), its training env's kwargs the defaults that
     ``env_kwargs`` overrides; a different env id than the trained one is refused. A
     callable: used as it is (its ``reset()`` called before each episode, where it has one).
@@ -104,6 +107,11 @@ def resolve_policy(
 
         scripted = SCRIPTED_POLICIES[env_id]
         return SCRIPTED, scripted, kwargs
+    if isinstance(policy, str) and policy == RANDOM:
+        from agents.policies import RandomPolicy
+
+        chance = RandomPolicy(seed)
+        return RANDOM, lambda: chance, kwargs
     if isinstance(policy, (str, Path)):
         from agents.train import TrainedPolicyError, load_policy
 
@@ -125,7 +133,9 @@ def resolve_policy(
         return str(policy), lambda: trained, merged
     if callable(policy):
         return type(policy).__name__, lambda: policy, kwargs
-    raise ConfigError(f"--policy must be 'scripted' or a trained model's path; got {policy!r}")
+    raise ConfigError(
+        f"--policy must be 'scripted', 'random' or a trained model's path; got {policy!r}"
+    )
 
 
 def evaluate(
@@ -144,8 +154,8 @@ def evaluate(
 
     Args:
         env_id: one of ``envs.ENV_IDS``.
-        policy: ``"scripted"``, a trained model's path (a ``probegym train`` folder or a
-            model ``.zip``), or a callable ``policy(observation) -> action``.
+        policy: ``"scripted"``, ``"random"``, a trained model's path (a ``probegym train``
+            folder or a model ``.zip``), or a callable ``policy(observation) -> action``.
         episodes: how many episodes (>= 1).
         seed: the first episode's seed (>= 0).
         env_kwargs: keyword arguments of ``gymnasium.make`` (``contact``, ``mesh``,
@@ -163,7 +173,7 @@ def evaluate(
     check_env_id(env_id)
     check_counts(episodes, seed)
     folder = check_output_folder(Path(out) if out is not None else default_out(env_id), "--out")
-    label, make_policy, kwargs = resolve_policy(env_id, policy, env_kwargs)
+    label, make_policy, kwargs = resolve_policy(env_id, policy, env_kwargs, seed)
 
     import gymnasium as gym
 

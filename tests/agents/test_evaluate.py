@@ -264,3 +264,12 @@ def test_each_task_has_its_centring_figure() -> None:
     scan = _task_figures({"remaining_m": 0.004, "good_share": 0.95})
     assert scan["centring_error_m"] is None
     assert (scan["remaining_end_m"], scan["good_share_end"]) == (0.004, 0.95)
+
+
+def test_the_random_baseline_is_seeded_and_acts_at_random(tmp_path: Path) -> None:
+    from agents.evaluation import evaluate
+
+    first = evaluate("probegym/BreastCompress-v0", "random", 1, 5, {"mesh": 623}, tmp_path / "a")
+    again = evaluate("probegym/BreastCompress-v0", "random", 1, 5, {"mesh": 623}, tmp_path / "b")
+    assert first[0]["return"] == again[0]["return"]
+    assert not first[0]["success"]
