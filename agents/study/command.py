@@ -25,8 +25,9 @@ def add_study_arguments(study: argparse.ArgumentParser) -> None:
         "--contact",
         "--methods",
         dest="methods",
-        default="lm,penalty,prescribed,pbd",
-        help="comma-separated contact methods",
+        default=None,
+        help="comma-separated contact methods (default lm,penalty,prescribed,pbd; --robot: "
+        "lm,penalty)",
     )
     study.add_argument(
         "--levels",
@@ -45,8 +46,8 @@ def add_study_arguments(study: argparse.ArgumentParser) -> None:
         "--profile",
         "--config",
         dest="config",
-        default="paper,robust",
-        help="paper | robust | paper,robust",
+        default=None,
+        help="paper | robust | paper,robust (default both; --robot --quick: robust)",
     )
     study.add_argument("--reference-level", default=None, help="level of the converged reference")
     study.add_argument(
@@ -74,6 +75,13 @@ def add_study_arguments(study: argparse.ArgumentParser) -> None:
         f"{','.join(map(str, QUICK_LESIONS))}, reference {QUICK_REFERENCE_LEVEL} (about 5 min)",
     )
     study.add_argument("--no-progress", action="store_true", help="no progress bar")
+    study.add_argument(
+        "--robot",
+        action="store_true",
+        help="hold the probe with the arm (probegym/BreastCompress-v0) and compare each cell "
+        "with the kinematic one; writes to OUT/robot (--quick: levels 623,1363, lesions 1,10, "
+        "lm and penalty, robust; about a minute)",
+    )
 
 
 def _split(value: str, what: str) -> list[str]:
@@ -85,7 +93,14 @@ def _split(value: str, what: str) -> list[str]:
 
 def spec_from_args(args: argparse.Namespace) -> StudySpec:
     """Validate every argument into a :class:`StudySpec` before any work starts."""
-    default_levels: tuple[int | str, ...] = QUICK_LEVELS if args.quick else PHANTOM_LEVELS
+    robot = bool(getattr(args, "robot", False))
+    quick_levels: tuple[int | str, ...] = QUICK_LEVELS
+    quick_lesions: tuple[int, ...] = QUICK_LESIONS
+    if robot:
+        from agents.study.robot import ROBOT_QUICK_LESIONS, ROBOT_QUICK_LEVELS
+
+        quick_levels, quick_lesions = ROBOT_QUICK_LEVELS, ROBOT_QUICK_LESIONS
+    default_levels: tuple[int | str, ...] = quick_levels if args.quick else PHANTOM_LEVELS
     levels = _split(args.levels, "levels") if args.levels else list(default_levels)
     if args.lesions:
         try:
@@ -93,7 +108,7 @@ def spec_from_args(args: argparse.Namespace) -> StudySpec:
         except ValueError:
             raise ConfigError(f"--lesions are numbers; got {args.lesions!r}") from None
     else:
-        lesions = QUICK_LESIONS if args.quick and args.scene == "synthetic" else None
+        lesions = quick_lesions if args.quick and args.scene == "synthetic" else None
     if args.depths is not None:
         if args.scene != "synthetic":
             raise ConfigError(
@@ -108,12 +123,14 @@ def spec_from_args(args: argparse.Namespace) -> StudySpec:
     reference = args.reference_level or (
         QUICK_REFERENCE_LEVEL if args.quick else PHANTOM_LEVELS[-1]
     )
+    methods = args.methods or ("lm,penalty" if robot else "lm,penalty,prescribed,pbd")
+    configs = args.config or ("robust" if robot and args.quick else "paper,robust")
     return StudySpec(
         scene=args.scene,
-        methods=tuple(contact_method(m) for m in _split(args.methods, "methods")),
+        methods=tuple(contact_method(m) for m in _split(methods, "methods")),
         levels=tuple(levels),  # type: ignore[arg-type]  # parsed in __post_init__
         lesions=lesions,
-        configs=tuple(_split(args.config, "config")),  # type: ignore[arg-type]
+        configs=tuple(_split(configs, "config")),  # type: ignore[arg-type]
         depths_m=depths,
         reference_level=reference,
         reference_kind=args.reference_kind,
@@ -126,6 +143,8 @@ def spec_from_args(args: argparse.Namespace) -> StudySpec:
 def run_study_command(args: argparse.Namespace) -> int:
     """Validate, run, and say where the outputs are; returns the exit code."""
     spec = spec_from_args(args)
+    if getattr(args, "robot", False):
+        return run_robot_command(args, spec)
     if args.workers < 1:
         raise ConfigError(f"--workers must be >= 1; got {args.workers}")
     from agents.study.runner import run_study
@@ -141,6 +160,36 @@ def run_study_command(args: argparse.Namespace) -> int:
     for name in ("results.jsonl", "stability.md", "errors.png", "times.png",
                  "accuracy_vs_time.png", "report.md", "report.html"):  # fmt: skip
         print(f"written: {args.out / name}")
+    for failure in outcome.failed:
+        print(f"failed (a bug, please report it; rerun to retry): {failure}", file=sys.stderr)
+    return 1 if outcome.failed else 0
+
+
+def run_robot_command(args: argparse.Namespace, spec: StudySpec) -> int:
+    """``probegym study --robot``: run the cells with the arm holding the probe, into
+    ``OUT/robot`` (see :mod:`agents.study.robot`); returns the exit code."""
+    from agents.study.robot import ROBOT_DIR, check_robot_spec
+    from agents.study.robot_runner import run_robot_study
+
+    if args.workers != 1 or args.ray is not None:
+        raise ConfigError(
+            "--robot runs its cells one after another in this process; drop --workers and --ray"
+        )
+    if args.measured is not None or args.reference_level is not None:
+        raise ConfigError(
+            "--robot compares each cell with the kinematic one, not with a reference or "
+            "measured positions; drop --measured and --reference-level"
+        )
+    check_robot_spec(spec)
+    outcome = run_robot_study(spec, args.out, progress=not args.no_progress)
+    unstable = sum(1 for record in outcome.records if record["status"] != "ok")
+    print(
+        f"study --robot: {outcome.ran_now} cells run now, {outcome.skipped} from an earlier "
+        f"run, {unstable} unstable"
+    )
+    for name in ("results.jsonl", "robot.md", "stability.md", "robot_vs_kinematic.png",
+                 "tracking.png", "summary.json"):  # fmt: skip
+        print(f"written: {args.out / ROBOT_DIR / name}")
     for failure in outcome.failed:
         print(f"failed (a bug, please report it; rerun to retry): {failure}", file=sys.stderr)
     return 1 if outcome.failed else 0

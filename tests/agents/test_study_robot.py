@@ -1,0 +1,151 @@
+"""``probegym study --robot``: the study's cells with the arm holding the probe, compared
+with the kinematic cells."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agents.study import robot as robot_module
+from agents.study.cell import run_cell
+from agents.study.robot import check_robot_spec, run_robot_cell
+from agents.study.robot_runner import compare_with_kinematic, kinematic_records, run_robot_study
+from agents.study.runner import RESULTS_FILE, SPEC_FILE, read_results
+from agents.study.spec import Cell, StudySpec
+from tissue.contact.stability import StabilityLimits
+from tissue.errors import ConfigError
+from tissue.profile import Profile
+
+# One cell: the dome's top lesion on the coarsest level, pressed 10 mm (about 5 s).
+ONE = StudySpec(methods=("lm",), levels=(623,), lesions=(1,), configs=("robust",), depths_m=(0.01,))
+ONE_CELL = Cell(Profile.ROBUST, "lm", 623, 1)
+#: The arm's translational impedance [N/m] (envs.controller.ControllerConfig's default).
+STIFFNESS_N_PER_M = 3000.0
+
+
+def _quiet(_: str) -> None:
+    pass
+
+
+@pytest.fixture(scope="module")
+def one_cell() -> dict:
+    return compare_with_kinematic(run_robot_cell(ONE, ONE_CELL), run_cell(ONE, ONE_CELL), "run")
+
+
+def test_robot_cell_records_the_protocol_and_agrees_with_the_kinematic_cell(one_cell) -> None:
+    record = one_cell
+    assert record["key"] == ONE_CELL.key and record["robot"] is True
+    assert record["status"] == "ok" and record["instability"] is None
+    assert record["stability_percent"] == 100.0
+    assert record["depths_m"] == [0.01]
+    for name in ("tracked_m", "force_normal_n", "skin_penetration_m", "lesion_error_m"):
+        assert len(record[name]) == 1, name
+    tracking = record["tracking"]
+    for name in ("along_m", "across_m", "orientation_deg"):
+        assert len(tracking[name]) == 1 and np.isfinite(tracking[name][0]), name
+    trace = record["trace"]
+    assert len(trace["t_s"]) == record["step_ms"]["count"] > 55  # 55 motion steps + holds
+    assert sum(trace["moving"]) == 55  # 11 mm at 0.2 mm a step, as the kinematic cell
+    force = record["force_normal_n"][0]
+    kinematic_force = record["kinematic"]["force_normal_n"][0]
+    along = tracking["along_m"][0]
+    # Held still, the impedance balances the tissue's push: the probe stops short of its
+    # target by F / K (measured: 0.448 mm at 1.342 N, F / K = 0.447 mm).
+    assert -1e-3 < along < 0.0
+    assert along == pytest.approx(-force / STIFFNESS_N_PER_M, rel=0.05)
+    # Across the axis and in orientation the arm holds the target closely (measured
+    # 0.0002 mm, 0.005 degrees).
+    assert tracking["across_m"][0] < 5e-5
+    assert tracking["orientation_deg"][0] < 0.1
+    # Pressed |along| less deep, the tissue pushes back less: by its stiffness times the
+    # shortfall. The force-depth curve stiffens (measured: its slope at 10 mm is 1.5 x its
+    # secant F / d), so the gap lies within 3 x secant x shortfall (measured 0.098 N).
+    gap = kinematic_force - force
+    assert 0.0 < gap <= 3.0 * (kinematic_force / 0.01) * abs(along)
+    # The lesion under the probe moves by less than the probe: the lesion error is at most
+    # the shortfall (measured 0.37 mm for 0.45 mm), with 0.05 mm for settling differences.
+    error = record["lesion_error_m"][0]
+    assert 0.0 < error <= abs(along) + 5e-5
+
+
+def test_a_physical_failure_is_recorded_as_data(monkeypatch: pytest.MonkeyPatch) -> None:
+    # A penetration bound no contact meets (1 nm): the first step touching the skin is an
+    # instability, which must end the cell as a record, not an exception.
+    strict = StabilityLimits(penetration_m=1e-9, landmark_jump_margin_m=None)
+    monkeypatch.setattr(robot_module, "STUDY_LIMITS", strict)
+    spec = StudySpec(
+        methods=("penalty",), levels=(623,), lesions=(1,), configs=("robust",), depths_m=(0.01,)
+    )
+    record = run_robot_cell(spec, Cell(Profile.ROBUST, "penalty", 623, 1))
+    assert record["status"] == "unstable"
+    assert record["instability"]["kind"] == "penetration"
+    assert record["depths_m"] == [] and record["tracked_m"] == []
+    assert 0.0 <= record["stability_percent"] < 100.0
+    assert json.dumps(record, allow_nan=False)  # no NaN passed off as a number
+
+
+@pytest.mark.parametrize(
+    ("spec", "names"),
+    [
+        (StudySpec(methods=("pbd",), levels=(623,)), ["pbd", "--methods lm,penalty"]),
+        (StudySpec(methods=("lm",), levels=(623,), depths_m=(0.01, 0.035)), ["35 mm", "0.034"]),
+        (StudySpec(scene="paper", methods=("lm",), levels=(623,)), ["--scene paper", "phantom"]),
+    ],
+)
+def test_bad_input_is_refused_naming_the_value_and_the_fix(spec: StudySpec, names) -> None:
+    with pytest.raises(ConfigError) as caught:
+        check_robot_spec(spec)
+    for name in names:
+        assert name in str(caught.value)
+
+
+def test_kinematic_twins_are_read_only_from_a_study_with_the_same_physics(
+    tmp_path: Path,
+) -> None:
+    record = {"key": ONE_CELL.key, "status": "ok"}
+    (tmp_path / SPEC_FILE).write_text(json.dumps(ONE.as_json()))
+    (tmp_path / RESULTS_FILE).write_text(json.dumps(record) + "\n")
+    assert kinematic_records(ONE, tmp_path, _quiet) == {ONE_CELL.key: record}
+    deeper = StudySpec(
+        methods=("lm",), levels=(623,), lesions=(1,), configs=("robust",), depths_m=(0.02,)
+    )
+    assert kinematic_records(deeper, tmp_path, _quiet) == {}
+    assert kinematic_records(ONE, tmp_path / "missing", _quiet) == {}
+
+
+@pytest.mark.slow
+def test_robot_study_writes_its_outputs_and_resumes(tmp_path: Path) -> None:
+    spec = StudySpec(methods=("lm", "penalty"), levels=(623,), lesions=(1, 10), configs=("robust",))
+    outcome = run_robot_study(spec, tmp_path, progress=False, log=_quiet)
+    out = tmp_path / "robot"
+    assert outcome.ran_now == 4 and not outcome.failed
+    for name in ("robot_vs_kinematic.png", "tracking.png"):
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    table = (out / "robot.md").read_text()
+    assert "lesion error robot vs kinematic" in table and "| 10 | 30 |" in table
+    records = read_results(out / RESULTS_FILE)
+    assert len(records) == 4
+    for record in records:
+        assert record["status"] == "ok" and record["kinematic"]["status"] == "ok"
+        assert record["depths_m"] == list(spec.depths_m)
+        along = np.abs(record["tracking"]["along_m"])
+        # The shortfall is the impedance's give under the force at every depth.
+        np.testing.assert_allclose(
+            along, np.array(record["force_normal_n"]) / STIFFNESS_N_PER_M, rtol=0.05
+        )
+        # Measured up to 2.5 mm at 30 mm (7.5 N); the lesion follows the probe's shortfall
+        # (penalty at 623, lesion 1, 30 mm: 2.52 mm for 2.49 mm).
+        assert np.all(np.array(record["lesion_error_m"]) <= along + 2e-4)
+        assert record["tracking"]["orientation_max_deg"] < 0.5
+    again = run_robot_study(spec, tmp_path, progress=False, log=_quiet)
+    assert again.ran_now == 0 and again.skipped == 4
+    with pytest.raises(ConfigError, match="different depths_m"):
+        run_robot_study(
+            StudySpec(methods=("lm",), levels=(623,), lesions=(1,), depths_m=(0.01,)),
+            tmp_path,
+            progress=False,
+            log=_quiet,
+        )
