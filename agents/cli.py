@@ -312,9 +312,10 @@ def _check_outputs(args: argparse.Namespace) -> None:
 def _kept(args: argparse.Namespace) -> str:
     """What an interrupted command kept, and how to go on."""
     if args.command == "study":
+        results = f"{args.out}/robot/results.jsonl" if args.robot else f"{args.out}/results.jsonl"
         return (
-            f"every cell finished so far is kept in {args.out}/results.jsonl; run the same "
-            "command again to resume"
+            f"every cell finished so far is kept in {results}; run the same command again to "
+            "resume"
         )
     if args.command == "train":
         return (
