@@ -97,6 +97,14 @@ def test_train_saves_everything_loads_back_and_resumes(tmp_path: Path) -> None:
         assert action.shape == (6,) and np.all(np.abs(action) <= 1.0)
         observation, *_ = env.step(action)
     env.close()
+    # probegym evaluate takes the folder: the env it was trained on, its normalisation.
+    evaluated = tmp_path / "evaluated"
+    assert (
+        main(["evaluate", ENV_ID, "--policy", str(out), "--episodes", "2", "--out", str(evaluated)])
+        == 0
+    )
+    summary = json.loads((evaluated / "summary.json").read_text())
+    assert summary["episodes"] == 2 and summary["env_kwargs"]["mesh"] == 623
     # Rerun with a larger budget (PPO collects whole rollouts: 1,024 steps x 2 envs): it
     # resumes, and the learning curve keeps its start.
     assert _train(out, "--steps", "4096") == 0
