@@ -273,3 +273,22 @@ def test_the_random_baseline_is_seeded_and_acts_at_random(tmp_path: Path) -> Non
     again = evaluate("probegym/BreastCompress-v0", "random", 1, 5, {"mesh": 623}, tmp_path / "b")
     assert first[0]["return"] == again[0]["return"]
     assert not first[0]["success"]
+
+
+@pytest.mark.parametrize(("successes", "trials"), [(0, 50), (50, 50), (0, 7), (3, 7), (1, 1)])
+def test_the_interval_contains_the_rate_and_plots(successes: int, trials: int, tmp_path) -> None:
+    from agents.evaluation.plots import success_plot
+    from agents.evaluation.report import wilson_interval
+
+    low, high = wilson_interval(successes, trials)
+    rate = successes / trials
+    assert 0.0 <= low <= rate <= high <= 1.0
+    summary = {
+        "success_rate": rate,
+        "success_rate_ci95": [low, high],
+        "successes": successes,
+        "episodes": trials,
+        "policy": "random",
+        "env_id": "probegym/BreastCompress-v0",
+    }
+    assert success_plot(tmp_path / "s.png", summary).stat().st_size > 0
