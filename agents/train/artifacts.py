@@ -7,7 +7,8 @@ Layout of a training folder::
     model.zip          the final model (SB3's format)
     vecnormalize.pkl   observation-normalisation statistics, where they were used
     checkpoints/       model_<steps>_steps.zip (+ model_vecnormalize_<steps>_steps.pkl)
-    eval/              evaluations.npz (SB3's EvalCallback log) and best_model.zip
+    eval/              evaluations.npz (SB3's EvalCallback log), best_model.zip and its
+                       best_vecnormalize.pkl
     monitor/           Monitor CSVs, one per training env
     tb/                TensorBoard event files
 
@@ -30,6 +31,7 @@ from tissue.errors import ConfigError
 CONFIG_FILE = "config.json"
 MODEL_FILE = "model.zip"
 NORMALIZE_FILE = "vecnormalize.pkl"
+BEST_NORMALIZE_FILE = "best_vecnormalize.pkl"
 CHECKPOINTS = "checkpoints"
 CHECKPOINT_PREFIX = "model"
 
@@ -149,6 +151,8 @@ def load_policy(path: str | Path, deterministic: bool = True) -> TrainedPolicy:
         steps = checkpoint_steps(model_path)
         if steps is not None:
             stats = checkpoint_normalization(folder, steps)
+        elif model_path.parent.name == "eval":
+            stats = model_path.parent / BEST_NORMALIZE_FILE
         if not stats.is_file():
             raise TrainedPolicyError(
                 f"{folder} was trained with observation normalisation but {stats.name} is "

@@ -31,6 +31,7 @@ import numpy as np
 
 from agents.outputs import write_json
 from agents.train.artifacts import (
+    BEST_NORMALIZE_FILE,
     CHECKPOINT_PREFIX,
     CHECKPOINTS,
     CONFIG_FILE,
@@ -246,6 +247,7 @@ def train(settings: TrainSettings, command: str | None = None, log: Any = print)
                 eval_freq=max(1, settings.eval_every // per_env),
                 log_path=str(out / "eval"),
                 best_model_save_path=str(out / "eval"),
+                callback_on_new_best=_best_normalization_saver(out) if settings.normalize else None,
                 deterministic=True,
                 verbose=0,
             ),
@@ -278,6 +280,21 @@ def train(settings: TrainSettings, command: str | None = None, log: Any = print)
         f"{time.perf_counter() - started:.0f} s: {final}"
     )
     return final
+
+
+def _best_normalization_saver(out: Path) -> Any:
+    """A callback saving the normalisation statistics beside ``eval/best_model.zip`` each time
+    the evaluation finds a new best (the model is useless without the statistics it saw)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class SaveNormalization(BaseCallback):
+        def _on_step(self) -> bool:
+            normalizer = self.model.get_vec_normalize_env()
+            if normalizer is not None:
+                normalizer.save(str(out / "eval" / BEST_NORMALIZE_FILE))
+            return True
+
+    return SaveNormalization()
 
 
 def _continue_evaluation_log(callback: Any, log: Path, up_to: int) -> None:

@@ -78,8 +78,12 @@ def test_train_saves_everything_loads_back_and_resumes(tmp_path: Path) -> None:
     assert config["env_kwargs"] == {"contact": "lm", "mesh": 623, "profile": "robust"}
     assert config["hyperparameters"]["n_steps"] == 1024 and config["revision"]
     assert {"stable_baselines3", "torch", "mujoco", "gymnasium"} <= set(config["versions"])
-    for name in ("model.zip", "vecnormalize.pkl", "eval/evaluations.npz", "eval/best_model.zip"):
+    for name in (
+        "model.zip", "vecnormalize.pkl", "eval/evaluations.npz", "eval/best_model.zip",
+        "eval/best_vecnormalize.pkl",
+    ):  # fmt: skip
         assert (out / name).is_file(), name
+    assert load_policy(out / "eval" / "best_model.zip").normalizer is not None
     assert (out / "checkpoints" / "model_2048_steps.zip").is_file()
     assert (out / "checkpoints" / "model_vecnormalize_2048_steps.pkl").is_file()
     assert list((out / "tb").rglob("events.out.tfevents.*"))
