@@ -28,7 +28,7 @@ from agents.study.robot import (
     max_press_m,
     run_robot_cell,
 )
-from agents.study.runner import RESULTS_FILE, SPEC_FILE, read_results
+from agents.study.runner import RESULTS_FILE, SPEC_FILE, read_results, study_lesions
 from agents.study.spec import StudySpec
 from tissue.errors import ConfigError
 
@@ -118,13 +118,7 @@ def run_robot_study(
     are run here with the study's own code."""
     check_robot_spec(spec)
     scene = scene_for(spec.scene)
-    lesions = spec.lesions if spec.lesions is not None else scene.lesion_ids
-    unknown = sorted(set(lesions) - set(scene.lesion_ids))
-    if unknown:
-        raise ConfigError(
-            f"lesion(s) {unknown} not in the {scene.name} scene; choose from "
-            f"{list(scene.lesion_ids)}"
-        )
+    lesions = study_lesions(spec, scene)
     out = study_out / ROBOT_DIR
     with exclusive_folder(out, "probegym study --robot"):
         spec_path = out / SPEC_FILE

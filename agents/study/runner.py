@@ -178,13 +178,7 @@ def run_study(
     if workers < 1:
         raise ConfigError(f"--workers must be >= 1; got {workers}")
     scene = scene_for(spec.scene)
-    lesions = spec.lesions if spec.lesions is not None else scene.lesion_ids
-    unknown = sorted(set(lesions) - set(scene.lesion_ids))
-    if unknown:
-        raise ConfigError(
-            f"lesion(s) {unknown} not in the {scene.name} scene; choose from "
-            f"{list(scene.lesion_ids)}"
-        )
+    lesions = study_lesions(spec, scene)
     measured = read_measured_csv(spec.measured_csv) if spec.measured_csv else None
     # One study writes to a folder at a time: two rewriting results.jsonl at once each kept
     # only their own records.
@@ -509,3 +503,15 @@ def _progress_bar(total: int, enabled: bool) -> Any:
         bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}<{remaining}, {postfix}",
         dynamic_ncols=True,
     )
+
+
+def study_lesions(spec: StudySpec, scene: StudyScene) -> tuple[int, ...]:
+    """The lesions the study runs: ``spec.lesions`` (checked against the scene's) or all."""
+    lesions = spec.lesions if spec.lesions is not None else scene.lesion_ids
+    unknown = sorted(set(lesions) - set(scene.lesion_ids))
+    if unknown:
+        raise ConfigError(
+            f"lesion(s) {unknown} not in the {scene.name} scene; choose from "
+            f"{list(scene.lesion_ids)}"
+        )
+    return tuple(lesions)
