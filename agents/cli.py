@@ -314,8 +314,7 @@ def _kept(args: argparse.Namespace) -> str:
     if args.command == "study":
         results = f"{args.out}/robot/results.jsonl" if args.robot else f"{args.out}/results.jsonl"
         return (
-            f"every cell finished so far is kept in {results}; run the same command again to "
-            "resume"
+            f"every cell finished so far is kept in {results}; run the same command again to resume"
         )
     if args.command == "train":
         return (
