@@ -28,7 +28,7 @@ data sheet: set them to your hardware's.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
@@ -212,19 +212,21 @@ class Randomizer:
         self.variation = variation
         if not s.varies_tissue:
             return variation, self.nominal
-        from dataclasses import replace
-
         materials = replace(base, tissue=replace(base.tissue, young_pa=young))
         materials = replace(materials, lesion_stiffness_ratio=ratio)
-        moved = offsets if np.any(offsets) else None
-        try:
-            return variation, self.nominal.varied(materials, moved)
-        except tissue.TissueInputError:
-            # The lesions' blends overlapped beyond the mesh's floor: the same draw at half
-            # the size (deterministic, and rare: each lesion's own room is respected).
-            halved = Variation(young, ratio, 0.5 * offsets, force_bias, torque_bias)
-            self.variation = halved
-            return halved, self.nominal.varied(materials, 0.5 * offsets)
+        # Where the lesions' blends overlap beyond the mesh's floor (rare: each lesion's own
+        # room is respected), the same draw at half the size, then a quarter, then none:
+        # deterministic, and never an error at reset.
+        for share in (1.0, 0.5, 0.25, 0.0):
+            shifted = share * offsets
+            try:
+                variant = self.nominal.varied(materials, shifted if np.any(shifted) else None)
+            except tissue.TissueInputError:
+                continue
+            variation = Variation(young, ratio, shifted, force_bias, torque_bias)
+            self.variation = variation
+            return variation, variant
+        raise AssertionError("unreachable: a variant without lesion offsets always builds")
 
     def noisy_wrench(self, wrench: NDArray[np.float64]) -> NDArray[np.float64]:
         """The F/T reading the policy sees: ``wrench`` (probe frame, (6,)) plus this episode's

@@ -185,3 +185,27 @@ def test_the_gymnasium_checker_passes_with_randomisation() -> None:
     env = _make(domain_randomization=True)
     check_env(env.unwrapped, skip_render_check=True)
     env.close()
+
+
+def test_offsets_the_mesh_refuses_shrink_and_never_fail_a_reset(monkeypatch) -> None:
+    """Where the lesions' blends together squeeze a tet too far, the same draw is tried
+    smaller, down to no move: a reset never raises for it, and says what it used."""
+    import tissue
+
+    env = _make(domain_randomization=DomainRandomization(lesion_jitter_m=0.002))
+    nominal = env.unwrapped.randomizer.nominal
+    original = type(nominal).varied
+    tried = []
+
+    def refusing(self, materials=None, lesion_offsets_m=None):
+        tried.append(None if lesion_offsets_m is None else np.linalg.norm(lesion_offsets_m))
+        if lesion_offsets_m is not None:
+            raise tissue.TissueInputError("squeezed")
+        return original(self, materials, None)
+
+    monkeypatch.setattr(type(nominal), "varied", refusing)
+    _, info = env.reset(seed=1)
+    assert len(tried) == 4 and tried[-1] is None and tried[0] > 0.0
+    assert not np.any(info["variation"]["lesion_offsets_m"])
+    assert env.unwrapped.tissue is not nominal
+    env.close()
