@@ -25,7 +25,7 @@ import mujoco
 import numpy as np
 from numpy.typing import NDArray
 
-from envs.errors import EnvConfigError
+from envs.errors import EnvConfigError, check_positive
 from envs.scene import SceneNames
 
 CONTROL_MODES = ("cartesian_impedance", "joint_delta")
@@ -59,15 +59,15 @@ class ControllerConfig:
             raise EnvConfigError(
                 f"unknown control_mode {self.mode!r}; choose one of {', '.join(CONTROL_MODES)}"
             )
-        for name in (
-            "stiffness_n_per_m",
-            "rotational_stiffness_nm_per_rad",
-            "damping_ratio",
-            "joint_stiffness_nm_per_rad",
-        ):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
-                raise EnvConfigError(f"{name} must be a positive number; got {value!r}")
+        check_positive(
+            self,
+            (
+                "stiffness_n_per_m",
+                "rotational_stiffness_nm_per_rad",
+                "damping_ratio",
+                "joint_stiffness_nm_per_rad",
+            ),
+        )
         if not (
             np.isfinite(self.posture_stiffness_nm_per_rad)
             and self.posture_stiffness_nm_per_rad >= 0

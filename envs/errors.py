@@ -31,3 +31,12 @@ def number_pair(value: Any) -> tuple[float, float] | None:
     if not all(finite_number(v) for v in value):
         return None
     return float(value[0]), float(value[1])
+
+
+def check_positive(settings: Any, names: Any) -> None:
+    """An :class:`EnvConfigError` naming the first of ``settings``'s fields ``names`` that is
+    not a finite number > 0."""
+    for name in names:
+        value = getattr(settings, name)
+        if not (finite_number(value) and value > 0):
+            raise EnvConfigError(f"{name} must be a positive number; got {value!r}")

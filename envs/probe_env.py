@@ -45,7 +45,7 @@ from envs.controller import (
     solve_ik,
 )
 from envs.coupling import TissueCoupling
-from envs.errors import EnvConfigError
+from envs.errors import EnvConfigError, check_positive
 from envs.observations import TOUCH_FORCE_N, ImagingConfig, sensed_wrench
 from envs.randomization import DomainRandomization, Randomizer
 from envs.rendering import CAMERAS, SceneRenderer
@@ -57,6 +57,13 @@ from envs.ultrasound import BModeConfig, BModeImager
 HOME_SEED_RAD = (-0.32, -1.5, 2.32, -2.39, 1.57, 1.25)
 #: Where the probe hovers at home [m] (above the phantom's apex, pointing down).
 HOME_PROBE_M = (0.0, 0.0, 0.14)
+#: The built-in phantom's lesions whose compression by 5-7 mm is within reach of a gentle
+#: press (measured with robust LM at 1,303 tets, probe normal to the skin above each:
+#: lesion 1 at 15 mm depth moves 5 mm up the image under a 12 mm press at 1.5-2 N, lesions
+#: 6, 7 and 10 (21-40 mm deep) under 8-10 mm at 1.2-1.5 N, lesion 4 (18 mm) under 15 mm at
+#: 2.7 N; lesions 2, 3, 5, 8 and 9 lie 7-15 mm under 45-degree skin, where frictionless
+#: tissue slides out sideways: 25 mm of press and 7-8 N moved them 5 mm at most).
+PHANTOM_TARGET_LESIONS = (1, 4, 6, 7, 10)
 #: Limits of a wrench observation [N, N m] and a joint velocity [rad/s] (the spaces' bounds).
 WRENCH_LIMIT = 200.0
 JOINT_VELOCITY_LIMIT = 20.0
@@ -77,10 +84,7 @@ class ActionConfig:
     max_joint_step_rad: float = 0.05
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
-                raise EnvConfigError(f"{f.name} must be a positive number; got {value!r}")
+        check_positive(self, (f.name for f in fields(self)))
 
 
 def _split_kwargs(
@@ -300,6 +304,46 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
             self.imager = BModeImager(model, self.imager.config)
         if self._renderer is not None:
             self._renderer.tissue = model
+
+    def target_lesions(self, min_depth_m: float | None = None) -> tuple[int, ...]:
+        """The lesions an episode may aim at: the task config's ``target_lesions``, else
+        :data:`PHANTOM_TARGET_LESIONS` on the built-in phantom, else on other meshes every
+        lesion (``min_depth_m`` None) or those from ``min_depth_m`` to 5 mm short of the
+        imaging depth under the skin at rest (:meth:`rest_depth`).
+
+        Raises:
+            EnvConfigError: ``target_lesions`` names none, or a lesion the mesh lacks.
+        """
+        lesions = self.tissue.lesions
+        wanted = self.task_config.target_lesions
+        if wanted is None:
+            if self.tissue.spec.mesh_kind() == "level":
+                wanted = PHANTOM_TARGET_LESIONS
+            elif min_depth_m is None:
+                wanted = tuple(lesion.label for lesion in lesions)
+            else:
+                deepest = self.imaging.imaging_depth_m - 0.005
+                wanted = tuple(
+                    lesion.label
+                    for lesion in lesions
+                    if min_depth_m <= self.rest_depth(lesion) <= deepest
+                )
+        labels = {lesion.label for lesion in lesions}
+        if not wanted or not set(wanted) <= labels:
+            raise EnvConfigError(
+                f"target_lesions must name lesions of this mesh, {sorted(labels)}; got {wanted!r}"
+            )
+        return tuple(wanted)
+
+    def rest_depth(self, lesion: tissue.Lesion) -> float:
+        """The lesion's centre's depth [m] below the probe touching the skin above it at rest,
+        along the probe's axis; -1 where no skin lies above it."""
+        try:
+            position, quat = self.tissue.touching_pose(lesion.rest_centre_m)
+        except tissue.TissueInputError:
+            return -1.0
+        rotation = quat_matrix(quat)
+        return float((rotation.T @ (lesion.rest_centre_m - position))[1])
 
     def _variation_info(self) -> dict[str, Any]:
         """``{"variation": ...}`` for a reset's info under domain randomisation, else {}."""

@@ -5,8 +5,8 @@ default ranges; a dict or a :class:`DomainRandomization` chooses (a zero range, 
 one part off). Off by default. Two kinds of variation:
 
 - **The patient** (drawn at each reset; a new tissue is built from the nominal one with
-  :meth:`tissue.Tissue.varied`, no remeshing, about 70 ms at 1,363 tets): the bulk tissue's
-  Young's modulus, the lesions' stiffness ratio, and each lesion's place at rest.
+  :meth:`tissue.Tissue.varied`, no remeshing: a reset takes 45-50 ms at 1,303 tets): the
+  bulk tissue's Young's modulus, the lesions' stiffness ratio, and each lesion's place.
 - **The robot's senses** (what the policy observes; rewards, success and ``info`` keep the
   simulated truth): the F/T sensor's bias (drawn at each reset) and noise (each step), and
   noise on the probe pose the arm reports (each step).

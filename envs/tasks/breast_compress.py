@@ -18,13 +18,6 @@ from envs.probe_env import ProbeEnv, quat_matrix, turn_matrix
 
 #: The registered episode length [steps] (5 s at 20 ms).
 MAX_EPISODE_STEPS = 250
-#: The built-in phantom's lesions whose compression by 5-7 mm is within reach of a gentle
-#: press (measured with robust LM at 1,303 tets, probe normal to the skin above each:
-#: lesion 1 at 15 mm depth moves 5 mm up the image under a 12 mm press at 1.5-2 N, lesions
-#: 6, 7 and 10 (21-40 mm deep) under 8-10 mm at 1.2-1.5 N, lesion 4 (18 mm) under 15 mm at
-#: 2.7 N; lesions 2, 3, 5, 8 and 9 lie 7-15 mm under 45-degree skin, where frictionless
-#: tissue slides out sideways: 25 mm of press and 7-8 N moved them 5 mm at most).
-PHANTOM_TARGET_LESIONS = (1, 4, 6, 7, 10)
 
 
 @dataclass(frozen=True)
@@ -33,8 +26,8 @@ class BreastCompressConfig:
 
     Attributes:
         target_lesions: lesion numbers drawn from at reset; None: on the built-in phantom
-            :data:`PHANTOM_TARGET_LESIONS`, elsewhere every lesion 15 mm to the imaging depth
-            less 5 mm under the skin.
+            :data:`envs.probe_env.PHANTOM_TARGET_LESIONS`, elsewhere every lesion 15 mm to
+            the imaging depth less 5 mm under the skin.
         compression_range_m: the compression asked, drawn uniformly [m]: how far the lesion
             must move up the image from its depth at the start.
         depth_tolerance_m: success band about the target depth [m].
@@ -212,7 +205,7 @@ class BreastCompressEnv(ProbeEnv):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
-        self._candidates = self._target_lesions()
+        self._candidates = self.target_lesions(min_depth_m=0.015)
         self._target = 0
         self._target_depth = 0.0
         self._held = 0
@@ -228,33 +221,6 @@ class BreastCompressEnv(ProbeEnv):
         )
         observed["target_depth"] = spaces.Box(0.0, bound, shape=(1,), dtype=np.float32)
         return observed
-
-    def _target_lesions(self) -> tuple[int, ...]:
-        lesions = self.tissue.lesions
-        wanted = self.task_config.target_lesions
-        if wanted is None:
-            if self.tissue.spec.mesh_kind() == "level":
-                wanted = PHANTOM_TARGET_LESIONS
-            else:
-                wanted = tuple(
-                    lesion.label
-                    for lesion in lesions
-                    if 0.015 <= self._rest_depth(lesion) <= self.imaging.imaging_depth_m - 0.005
-                )
-        labels = {lesion.label for lesion in lesions}
-        if not wanted or not set(wanted) <= labels:
-            raise EnvConfigError(
-                f"target_lesions must name lesions of this mesh, {sorted(labels)}; got {wanted!r}"
-            )
-        return tuple(wanted)
-
-    def _rest_depth(self, lesion: tissue.Lesion) -> float:
-        try:
-            position, quat = self.tissue.touching_pose(lesion.rest_centre_m)
-        except tissue.TissueInputError:
-            return -1.0
-        rotation = quat_matrix(quat)
-        return float((rotation.T @ (lesion.rest_centre_m - position))[1])
 
     # ------------------------------------------------------------------ episode
 

@@ -13,9 +13,8 @@ from gymnasium import spaces
 from numpy.typing import NDArray
 
 import tissue
-from envs.errors import EnvConfigError, finite_number, number_pair
+from envs.errors import EnvConfigError, check_positive, finite_number, number_pair
 from envs.probe_env import ProbeEnv, quat_matrix
-from envs.tasks.breast_compress import PHANTOM_TARGET_LESIONS
 
 #: The registered episode length [steps] (4 s at 20 ms).
 MAX_EPISODE_STEPS = 200
@@ -33,7 +32,7 @@ class ForceScanConfig:
 
     Attributes:
         target_lesions: lesions above which the path may start, drawn at reset; None: on
-            the built-in phantom :data:`envs.tasks.breast_compress.PHANTOM_TARGET_LESIONS`
+            the built-in phantom :data:`envs.probe_env.PHANTOM_TARGET_LESIONS`
             (under gently sloped skin), elsewhere every lesion.
         path_length_range_m: the path's length along the rest skin, drawn uniformly [m]
             (the start-to-end chord, ``info["path_length_m"]``, is shorter).
@@ -64,18 +63,18 @@ class ForceScanConfig:
     max_turn_rad: float = math.radians(75.0)
 
     def __post_init__(self) -> None:
-        for name in (
-            "end_tolerance_m",
-            "max_tilt_rad",
-            "hard_force_n",
-            "workspace_m",
-            "max_press_m",
-            "max_lift_m",
-            "max_turn_rad",
-        ):
-            value = getattr(self, name)
-            if not (finite_number(value) and value > 0):
-                raise EnvConfigError(f"{name} must be a positive number; got {value!r}")
+        check_positive(
+            self,
+            (
+                "end_tolerance_m",
+                "max_tilt_rad",
+                "hard_force_n",
+                "workspace_m",
+                "max_press_m",
+                "max_lift_m",
+                "max_turn_rad",
+            ),
+        )
         lengths = number_pair(self.path_length_range_m)
         if lengths is None or not (0.0 < lengths[0] <= lengths[1] < self.workspace_m):
             raise EnvConfigError(
@@ -252,7 +251,7 @@ class ForceScanEnv(ProbeEnv):
                 f"{self.tissue.spec.profile!r} fixes the set at first contact (it cannot "
                 f"sweep): use profile='robust'"
             )
-        self._candidates = self._target_lesions()
+        self._candidates = self.target_lesions()
         self._target = 0
         self._path_start = np.zeros(3)
         self._path_end = np.zeros(3)
@@ -276,22 +275,6 @@ class ForceScanEnv(ProbeEnv):
             dtype=np.float32,
         )
         return observed
-
-    def _target_lesions(self) -> tuple[int, ...]:
-        labels = {lesion.label for lesion in self.tissue.lesions}
-        wanted = self.task_config.target_lesions
-        if wanted is None:
-            if self.tissue.spec.mesh_kind() == "level":
-                wanted = PHANTOM_TARGET_LESIONS
-            else:
-                wanted = tuple(sorted(labels))
-        if not wanted or not set(wanted) <= labels:
-            raise EnvConfigError(
-                f"target_lesions must name lesions of this mesh, {sorted(labels)}; got {wanted!r}"
-            )
-        return tuple(wanted)
-
-    # ------------------------------------------------------------------ episode
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None

@@ -13,10 +13,9 @@ from gymnasium import spaces
 from numpy.typing import NDArray
 
 import tissue
-from envs.errors import EnvConfigError, finite_number, number_pair
+from envs.errors import EnvConfigError, check_positive, finite_number, number_pair
 from envs.observations import LesionInImage, lesion_in_image
 from envs.probe_env import ProbeEnv, quat_matrix, turn_matrix
-from envs.tasks.breast_compress import PHANTOM_TARGET_LESIONS
 
 #: The registered episode length [steps] (6 s at 20 ms).
 MAX_EPISODE_STEPS = 300
@@ -30,7 +29,7 @@ class LesionSearchConfig:
 
     Attributes:
         target_lesions: lesion numbers drawn from at reset; None: on the built-in phantom
-            :data:`envs.tasks.breast_compress.PHANTOM_TARGET_LESIONS` (those under gently
+            :data:`envs.probe_env.PHANTOM_TARGET_LESIONS` (those under gently
             sloped skin), elsewhere every lesion 10 mm to the imaging depth less 5 mm under
             the skin.
         start_offset_range_m: the start's distance from the lesion along the probe's x axis
@@ -61,17 +60,17 @@ class LesionSearchConfig:
     max_turn_rad: float = math.radians(30.0)
 
     def __post_init__(self) -> None:
-        for name in (
-            "centre_tolerance_m",
-            "hard_force_n",
-            "workspace_m",
-            "max_press_m",
-            "max_lift_m",
-            "max_turn_rad",
-        ):
-            value = getattr(self, name)
-            if not (finite_number(value) and value > 0):
-                raise EnvConfigError(f"{name} must be a positive number; got {value!r}")
+        check_positive(
+            self,
+            (
+                "centre_tolerance_m",
+                "hard_force_n",
+                "workspace_m",
+                "max_press_m",
+                "max_lift_m",
+                "max_turn_rad",
+            ),
+        )
         if not (finite_number(self.start_tilt_rad) and self.start_tilt_rad >= 0):
             raise EnvConfigError(f"start_tilt_rad must be >= 0; got {self.start_tilt_rad!r}")
         offsets = number_pair(self.start_offset_range_m)
@@ -218,7 +217,7 @@ class LesionSearchEnv(ProbeEnv):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
-        self._candidates = self._target_lesions()
+        self._candidates = self.target_lesions(min_depth_m=0.010)
         self._target = 0
         self._start_offset = 0.0
         self._held = 0
@@ -233,33 +232,6 @@ class LesionSearchEnv(ProbeEnv):
             dtype=np.float32,
         )
         return observed
-
-    def _target_lesions(self) -> tuple[int, ...]:
-        lesions = self.tissue.lesions
-        wanted = self.task_config.target_lesions
-        if wanted is None:
-            if self.tissue.spec.mesh_kind() == "level":
-                wanted = PHANTOM_TARGET_LESIONS
-            else:
-                wanted = tuple(
-                    lesion.label
-                    for lesion in lesions
-                    if 0.010 <= self._rest_depth(lesion) <= self.imaging.imaging_depth_m - 0.005
-                )
-        labels = {lesion.label for lesion in lesions}
-        if not wanted or not set(wanted) <= labels:
-            raise EnvConfigError(
-                f"target_lesions must name lesions of this mesh, {sorted(labels)}; got {wanted!r}"
-            )
-        return tuple(wanted)
-
-    def _rest_depth(self, lesion: tissue.Lesion) -> float:
-        try:
-            position, quat = self.tissue.touching_pose(lesion.rest_centre_m)
-        except tissue.TissueInputError:
-            return -1.0
-        rotation = quat_matrix(quat)
-        return float((rotation.T @ (lesion.rest_centre_m - position))[1])
 
     # ------------------------------------------------------------------ episode
 

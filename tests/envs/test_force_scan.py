@@ -11,7 +11,7 @@ import tissue
 from agents.policies import ForceScanPolicy
 from envs.errors import EnvConfigError
 from envs.observations import EFFECTS
-from envs.tasks.breast_compress import PHANTOM_TARGET_LESIONS
+from envs.probe_env import PHANTOM_TARGET_LESIONS
 from envs.tasks.force_scan import MAX_EPISODE_STEPS, ForceScanEnv
 
 ENV_ID = "probegym/ForceScan-v0"

@@ -11,7 +11,7 @@ import tissue
 from agents.policies import LesionSearchPolicy
 from envs.errors import EnvConfigError
 from envs.observations import EFFECTS
-from envs.tasks.breast_compress import PHANTOM_TARGET_LESIONS
+from envs.probe_env import PHANTOM_TARGET_LESIONS
 from envs.tasks.lesion_search import MAX_EPISODE_STEPS, LesionSearchEnv
 
 ENV_ID = "probegym/LesionSearch-v0"

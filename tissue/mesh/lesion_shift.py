@@ -43,8 +43,17 @@ _DIRECTIONS = np.array(
 _DIRECTIONS /= np.linalg.norm(_DIRECTIONS, axis=1)[:, None]
 
 
-def _lesion_weights(mesh: TetMesh, label: int) -> NDArray[np.float64]:
-    """Per node, the share of lesion ``label``'s offset it takes, (node_count,) in [0, 1]."""
+def _outer_nodes(mesh: TetMesh) -> NDArray[np.bool_]:
+    """Per node, whether it lies on the mesh's boundary or is fixed: nodes no shift moves."""
+    outer = np.zeros(mesh.node_count, dtype=bool)
+    outer[np.unique(boundary_faces(mesh.tets))] = True
+    outer[mesh.fixed_nodes] = True
+    return outer
+
+
+def _lesion_weights(mesh: TetMesh, label: int, outer: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Per node, the share of lesion ``label``'s offset it takes, (node_count,) in [0, 1];
+    ``outer`` from :func:`_outer_nodes`."""
     tets = np.flatnonzero(mesh.region == label)
     if tets.size == 0:
         raise MeshError(
@@ -52,10 +61,8 @@ def _lesion_weights(mesh: TetMesh, label: int) -> NDArray[np.float64]:
             "regions can be shifted (point lesions are tracked points, not regions)"
         )
     own = np.unique(mesh.tets[tets])
-    held = np.zeros(mesh.node_count, dtype=bool)
-    held[np.unique(boundary_faces(mesh.tets))] = True
+    held = outer.copy()
     held[np.unique(mesh.tets[(mesh.region > 0) & (mesh.region != label)])] = True
-    held[mesh.fixed_nodes] = True
     if held[own].any():
         raise MeshError(
             f"lesion {label} ({mesh.region_names[label]}) touches the mesh's boundary or another "
@@ -102,11 +109,12 @@ def shift_lesions(mesh: TetMesh, offsets_m: ArrayLike) -> TetMesh:
             f"in metres; got shape {offsets.shape}"
         )
     nodes = mesh.nodes.copy()
+    outer = _outer_nodes(mesh)
     for label in range(1, count + 1):
         offset = offsets[label - 1]
         if not np.any(offset):
             continue
-        nodes += _lesion_weights(mesh, label)[:, None] * offset[None, :]
+        nodes += _lesion_weights(mesh, label, outer)[:, None] * offset[None, :]
     ratio = _volume_ratio(mesh, nodes)
     if ratio < MIN_VOLUME_RATIO:
         limits = lesion_shift_limits(mesh)
@@ -138,9 +146,10 @@ def lesion_shift_limits(mesh: TetMesh) -> NDArray[np.float64]:
     touches the boundary or another lesion."""
     limits = np.zeros(mesh.lesion_count)
     volumes = mesh.tet_volumes()
+    outer = _outer_nodes(mesh)
     for label in range(1, mesh.lesion_count + 1):
         try:
-            weights = _lesion_weights(mesh, label)
+            weights = _lesion_weights(mesh, label, outer)
         except MeshError:
             continue
         moving = np.flatnonzero(np.any(weights[mesh.tets] > 0.0, axis=1))
