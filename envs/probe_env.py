@@ -41,7 +41,6 @@ from envs.controller import (
     CartesianImpedance,
     ControllerConfig,
     JointImpedance,
-    rotation_vector,
     solve_ik,
 )
 from envs.coupling import TissueCoupling
@@ -49,6 +48,7 @@ from envs.errors import EnvConfigError, check_positive
 from envs.observations import TOUCH_FORCE_N, ImagingConfig, sensed_wrench
 from envs.randomization import DomainRandomization, Randomizer
 from envs.rendering import CAMERAS, SceneRenderer
+from envs.rotations import axis_angle, pointing_down, quat_matrix, rotation_angle, turn_matrix
 from envs.scene import SceneConfig, build_scene, scene_names
 from envs.ultrasound import BModeConfig, BModeImager
 
@@ -357,7 +357,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         """Joint angles with the probe hovering over the phantom, pointing down."""
         seed = np.zeros(self.joint_count)
         seed[: min(6, self.joint_count)] = HOME_SEED_RAD[: self.joint_count]
-        rotation = _pointing_down()
+        rotation = pointing_down()
         q, error = solve_ik(
             self.model, self.data, self.names, np.array(HOME_PROBE_M), rotation, seed
         )
@@ -403,7 +403,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
                 action[:3] * scale.max_translation_m
             )
             turn = np.empty(4)
-            mujoco.mju_axisAngle2Quat(turn, *_axis_angle(action[3:] * scale.max_rotation_rad))
+            mujoco.mju_axisAngle2Quat(turn, *axis_angle(action[3:] * scale.max_rotation_rad))
             local = np.empty(9)
             mujoco.mju_quat2Mat(local, turn)
             rotation = rotation @ local.reshape(3, 3)
@@ -596,37 +596,3 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
-
-
-def _pointing_down() -> NDArray[np.float64]:
-    """Probe x along world x, pressing (+y) down."""
-    return np.column_stack([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
-
-
-def _axis_angle(vector: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
-    angle = float(np.linalg.norm(vector))
-    if angle < 1e-15:
-        return np.array([1.0, 0.0, 0.0]), 0.0
-    return vector / angle, angle
-
-
-def rotation_angle(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
-    """The angle between two rotation matrices [rad]."""
-    return float(np.linalg.norm(rotation_vector(a @ b.T)))
-
-
-def quat_matrix(quat: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The rotation matrix (3, 3) of a unit quaternion (w, x, y, z)."""
-    matrix = np.empty(9)
-    mujoco.mju_quat2Mat(matrix, np.asarray(quat, dtype=np.float64))
-    return matrix.reshape(3, 3)
-
-
-def turn_matrix(vector: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The rotation matrix (3, 3) of a rotation vector [rad]."""
-    angle = float(np.linalg.norm(vector))
-    if angle == 0.0:
-        return np.eye(3)
-    quat = np.empty(4)
-    mujoco.mju_axisAngle2Quat(quat, vector / angle, angle)
-    return quat_matrix(quat)

@@ -136,7 +136,7 @@ def tracking_error(
 ) -> tuple[float, float, float]:
     """The probe's pose now minus the commanded one: along the pressing axis [m] (negative:
     short of the target), across it [m], and the angle between the orientations [deg]."""
-    from envs.probe_env import rotation_angle
+    from envs.rotations import rotation_angle
 
     actual, actual_rot = env.probe_pose()
     offset = actual - position
@@ -170,7 +170,7 @@ def _arm_finite(env: Any) -> bool:
 def run_robot_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
     """Run one cell with the arm holding the probe; returns its record (no kinematic
     comparison yet: :func:`compare_with_kinematic` adds it)."""
-    from envs.probe_env import quat_matrix
+    from envs.rotations import quat_matrix
 
     started = time.perf_counter()
     scene = scene_for(spec.scene)

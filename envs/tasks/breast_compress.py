@@ -14,7 +14,8 @@ from numpy.typing import NDArray
 import tissue
 from envs.errors import EnvConfigError
 from envs.observations import LesionInImage, lesion_in_image
-from envs.probe_env import ProbeEnv, quat_matrix, turn_matrix
+from envs.probe_env import ProbeEnv
+from envs.rotations import quat_matrix, turn_matrix
 
 #: The registered episode length [steps] (5 s at 20 ms).
 MAX_EPISODE_STEPS = 250
