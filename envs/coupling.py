@@ -66,8 +66,8 @@ class TissueCoupling:
         names: its ids.
         tissue_model: the tissue (its ``dt`` must be a whole number of ``robot_dt``).
         reaction: apply the tissue's wrench to the probe (False: one-way coupling, the
-            tissue follows the probe and the robot never feels it; for tests and as the
-            cheapest scene).
+            tissue follows the probe and the robot never feels it; no wrench stiffness is
+            computed: a scene without ``force_feedback``, :mod:`envs.effects`).
         linearised: apply w0 - K (q - q0) (True) or hold w0 (False).
     """
 
@@ -92,7 +92,8 @@ class TissueCoupling:
         self.names = names
         self.tissue = tissue_model
         self.reaction = reaction
-        self.linearised = linearised and tissue_model.has_tangent
+        # Without the reaction nothing is applied: K is never computed.
+        self.linearised = linearised and tissue_model.has_tangent and reaction
         self._w0 = np.zeros(6)
         self._stiffness = np.zeros((6, 6))
         self._q0_pos = np.zeros(3)
@@ -202,7 +203,10 @@ class TissueCoupling:
         else:
             self._w0 = np.concatenate([step.force_world_n, step.torque_world_nm])
             if self.linearised and self._stiffness_stale(step, position):
-                stiffness = self.tissue.wrench_stiffness()
+                # No contact point, nothing to be stiff: K = 0 without a factorisation.
+                stiffness = (
+                    self.tissue.wrench_stiffness() if step.diagnostics.contact_count else None
+                )
                 self._stiffness = np.zeros((6, 6)) if stiffness is None else stiffness
                 self._stiffness_from = (step.diagnostics.contact_count, position, 0)
             elif self._stiffness_from is not None:

@@ -13,7 +13,10 @@ phantom level or a mesh file, see ``tissue.TissueSpec``), ``young_pa``, ``poisso
 ``stiffness_n_per_m`` (the probe impedance's translational stiffness), ``render_mode``
 (rgb_array | human), ``camera_name`` (overview | probe_side), ``width``, ``height``,
 ``robot`` (an MJCF arm) and ``flange_site``, ``robot_base_m`` (where its base stands),
-``robot_dt``, ``reaction`` (False: one-way coupling), ``max_translation_m`` and
+``robot_dt``, ``scene`` (a preset of :data:`envs.effects.SCENES`: ``full``, the default,
+``imaging``, ``one_way``, ``rigid``) or ``effects`` (a list of effect names, see
+:mod:`envs.effects`: a scene simulates only the effects it calls for, and a task whose
+terms need an effect the scene lacks is refused), ``max_translation_m`` and
 ``max_rotation_rad`` (the action's scale), the imaging geometry ``aperture_m``,
 ``imaging_depth_m``, ``slice_thickness_m``, and ``image`` (True, or an
 :class:`envs.ultrasound.BModeConfig`: observe a B-mode image of the slice under the probe;
@@ -44,10 +47,12 @@ from envs.controller import (
     solve_ik,
 )
 from envs.coupling import TissueCoupling
+from envs.effects import Scene, check_terms, resolve_scene
 from envs.errors import EnvConfigError, check_positive
 from envs.observations import TOUCH_FORCE_N, ImagingConfig, sensed_wrench
 from envs.randomization import DomainRandomization, Randomizer
 from envs.rendering import CAMERAS, SceneRenderer
+from envs.rigid import RigidCoupling
 from envs.rotations import axis_angle, pointing_down, quat_matrix, rotation_angle, turn_matrix
 from envs.scene import SceneConfig, build_scene, scene_names
 from envs.ultrasound import BModeConfig, BModeImager
@@ -114,6 +119,8 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         "joint_vel": (),
         "image": ("deformation", "image"),
     }
+    #: The effects each of the task's terms needs; tasks replace it with theirs.
+    TERM_EFFECTS: ClassVar[dict[str, tuple[str, ...]]] = COMMON_TERM_EFFECTS
 
     #: The task's own settings (a frozen dataclass); keyword arguments of its fields go there.
     task_config_type: ClassVar[type] = type(None)
@@ -135,7 +142,8 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         flange_site: str | None = None,
         robot_base_m: tuple[float, float, float] | None = None,
         robot_dt: float = 0.002,
-        reaction: bool = True,
+        scene: str | Scene | None = None,
+        effects: list[str] | tuple[str, ...] | None = None,
         image: bool | BModeConfig = False,
         domain_randomization: bool | dict[str, Any] | DomainRandomization | None = False,
         **kwargs: Any,
@@ -165,7 +173,8 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
                     "flange_site",
                     "robot_base_m",
                     "robot_dt",
-                    "reaction",
+                    "scene",
+                    "effects",
                     "image",
                     "domain_randomization",
                 }  # fmt: skip
@@ -209,12 +218,26 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
             poisson=poisson,
             lesion_stiffness_ratio=lesion_stiffness_ratio,
         )
-        self.model = build_scene(self.scene_config, self.tissue.probe_shape)
+        #: What this environment simulates (:mod:`envs.effects`).
+        self.scene = resolve_scene(scene, effects, image is not False, profile)
+        deforms = self.scene.has("deformation")
+        self.model = build_scene(
+            self.scene_config,
+            self.tissue.probe_shape,
+            rigid_breast=None if deforms else self.tissue.surface(),
+        )
         self.data = mujoco.MjData(self.model)
         self.names = scene_names(self.model)
-        self.coupling = TissueCoupling(
-            self.model, self.data, self.names, self.tissue, reaction=bool(reaction)
-        )
+        if deforms:
+            self.coupling: TissueCoupling | RigidCoupling = TissueCoupling(
+                self.model,
+                self.data,
+                self.names,
+                self.tissue,
+                reaction=self.scene.has("force_feedback"),
+            )
+        else:
+            self.coupling = RigidCoupling(self.model, self.data, self.names, self.tissue)
         self.joint_count = len(self.names.joint_qpos)
         if self.controller_config.mode == "cartesian_impedance":
             self.controller: CartesianImpedance | JointImpedance = CartesianImpedance(
@@ -222,7 +245,10 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
             )
         else:
             self.controller = JointImpedance(self.model, self.names, self.controller_config)
-        self.imager = self._make_imager(image)
+        self.imager = self._make_imager(
+            True if image is False and self.scene.has("image") else image
+        )
+        check_terms(type(self).__name__, self.scene, self.term_effects())
         settings = DomainRandomization.parse(domain_randomization)
         #: Draws each episode's variation (None: no domain randomisation).
         self.randomizer = None if settings is None else Randomizer(settings, self.tissue)
@@ -240,6 +266,14 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         self.last_timing: dict[str, float] = {}
 
     # ------------------------------------------------------------------ spaces
+
+    def term_effects(self) -> dict[str, tuple[str, ...]]:
+        """The effects each of this environment's terms needs (``image`` only where the
+        image is observed)."""
+        terms = dict(self.TERM_EFFECTS)
+        if self.imager is None:
+            terms.pop("image", None)
+        return terms
 
     def _make_imager(self, image: bool | BModeConfig) -> BModeImager | None:
         """The B-mode imager ``image`` asks for (None: no image, never computed)."""

@@ -43,6 +43,10 @@ PROBE_BODY = "probe"
 PROBE_SITE = "probe"
 FT_SITE = "ft_sensor"
 FORCE_SENSOR = "ft_force"
+#: The rigid breast's geom and mesh (:mod:`envs.rigid`), and the contact bit it shares with
+#: the probe's face only (MuJoCo's default, 1, is the arm's).
+RIGID_BREAST_GEOM = "breast_rigid"
+RIGID_CONTACT_BIT = 2
 TORQUE_SENSOR = "ft_torque"
 
 
@@ -99,6 +103,7 @@ def build_scene(
     config: SceneConfig,
     probe_shape: tissue.ProbeShape | None = None,
     surface: tissue.SurfaceMesh | None = None,
+    rigid_breast: tissue.SurfaceMesh | None = None,
 ) -> mujoco.MjModel:
     """Compile the scene; with ``surface``, the breast's flexes too (for drawing only).
 
@@ -108,6 +113,8 @@ def build_scene(
             bounds' length and width), default the linear probe.
         surface: the tissue's surface at rest (:meth:`tissue.Tissue.surface`): one mocap body
             per vertex, a flex per region.
+        rigid_breast: the tissue's surface at rest, for the rigid breast (:mod:`envs.rigid`):
+            a static mesh geom of its skin that the probe's face collides with.
     """
     spec = mujoco.MjSpec()
     spec.modelname = "probegym"
@@ -127,9 +134,11 @@ def build_scene(
             f"the arm in {config.robot_path} has no site {config.flange_site!r}; its sites: "
             f"{[name[len(ROBOT_PREFIX) :] for name in names]} (give flange_site=NAME)"
         )
-    _add_probe(spec, flange, probe_shape)
+    _add_probe(spec, flange, probe_shape, collides=rigid_breast is not None)
     if surface is not None:
         _add_breast(spec, surface)
+    if rigid_breast is not None:
+        _add_rigid_breast(spec, rigid_breast)
     return _compile(spec)
 
 
@@ -219,10 +228,14 @@ def _look_at(position: tuple[float, ...], target: tuple[float, ...]) -> list[flo
 
 
 def _add_probe(
-    spec: mujoco.MjSpec, flange: mujoco.MjsSite, probe_shape: tissue.ProbeShape | None
+    spec: mujoco.MjSpec,
+    flange: mujoco.MjsSite,
+    probe_shape: tissue.ProbeShape | None,
+    collides: bool = False,
 ) -> None:
     """The probe on the flange: its frame is the tissue's probe frame, its +y along the
-    flange's z, its back (the housing's end) on the flange, the F/T site there."""
+    flange's z, its back (the housing's end) on the flange, the F/T site there. With
+    ``collides`` its face collides with the rigid breast (:data:`RIGID_CONTACT_BIT`)."""
     shape = probe_shape if probe_shape is not None else _default_probe()
     low, high = shape.local_bounds_m()
     length = float(high[0] - low[0])
@@ -249,14 +262,15 @@ def _add_probe(
         ("face", -FACE_PLATE_M, 0.0, face),
     ):
         middle, half_height = 0.5 * (y_from + y_to), 0.5 * (y_to - y_from)
+        bit = RIGID_CONTACT_BIT if collides and name == "face" else 0
         probe.add_geom(
             name=f"probe_{name}",
             type=mujoco.mjtGeom.mjGEOM_BOX,
             size=[straight, half_height, radius],
             pos=[0.0, middle, 0.0],
             rgba=rgba,
-            contype=0,
-            conaffinity=0,
+            contype=bit,
+            conaffinity=bit,
             mass=0.0,
         )
         for sign in (-1.0, 1.0):
@@ -267,8 +281,8 @@ def _add_probe(
                 pos=[sign * straight, middle, 0.0],
                 quat=[half, half, 0.0, 0.0],
                 rgba=rgba,
-                contype=0,
-                conaffinity=0,
+                contype=bit,
+                conaffinity=bit,
                 mass=0.0,
             )
     probe.add_site(name=PROBE_SITE, pos=[0.0, 0.0, 0.0], size=[0.003, 0.003, 0.003])
@@ -320,6 +334,26 @@ def _add_breast(spec: mujoco.MjSpec, surface: tissue.SurfaceMesh) -> None:
         flex.radius = 0.0005
         flex.contype = 0
         flex.conaffinity = 0
+
+
+def _add_rigid_breast(spec: mujoco.MjSpec, surface: tissue.SurfaceMesh) -> None:
+    """The rest skin as one static mesh geom (collided by its convex hull) that only the
+    probe's face touches."""
+    skin = surface.triangles[surface.triangle_region == 0]
+    used = np.unique(skin)
+    spec.add_mesh(
+        name=RIGID_BREAST_GEOM,
+        uservert=surface.vertices_m[used].reshape(-1).tolist(),
+        userface=np.searchsorted(used, skin).reshape(-1).astype(int).tolist(),
+    )
+    spec.worldbody.add_geom(
+        name=RIGID_BREAST_GEOM,
+        type=mujoco.mjtGeom.mjGEOM_MESH,
+        meshname=RIGID_BREAST_GEOM,
+        rgba=list(SKIN_RGBA[:3]) + [1.0],
+        contype=RIGID_CONTACT_BIT,
+        conaffinity=RIGID_CONTACT_BIT,
+    )
 
 
 #: The skin's patches: azimuth and elevation bins about the skin's centre.

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import json
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +43,14 @@ def add_train_parser(commands: Any) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument(
         "--domain-randomization", action="store_true", help="randomise each episode (defaults)"
+    )
+    parser.add_argument(
+        "--env-kwargs",
+        type=env_kwargs_json,
+        default={},
+        metavar="JSON",
+        help="more gymnasium.make keyword arguments, a JSON object, e.g. "
+        + "'{\"start_offset_range_m\": [0.0, 0.01]}'",
     )
     parser.add_argument(
         "--ray",
@@ -97,6 +106,13 @@ def _settings(
     }
     if args.domain_randomization:
         env_kwargs["domain_randomization"] = True
+    clashes = sorted(set(args.env_kwargs) & set(env_kwargs))
+    if clashes:
+        raise TrainError(
+            f"--env-kwargs sets {', '.join(clashes)}, which have options of their own: "
+            f"use --{clashes[0].replace('_', '-')} instead"
+        )
+    env_kwargs.update(args.env_kwargs)
     return TrainSettings(
         env_id=args.env_id,
         out=out,
@@ -168,6 +184,34 @@ def _count(value: str) -> int:
             f"expected a whole number >= 1 (e.g. 300000 or 300k); got {value!r}"
         )
     return int(text)
+
+
+#: What ``--env-kwargs`` takes, for its error messages.
+EXAMPLE_KWARGS = "'{\"hold_steps\": 10}'"
+
+
+def env_kwargs_json(value: str) -> dict[str, Any]:
+    """``--env-kwargs``: a JSON object of ``gymnasium.make`` keyword arguments (JSON lists
+    become tuples, as the task configs' pairs are written)."""
+    try:
+        parsed = json.loads(value)
+    except json.JSONDecodeError as error:
+        raise argparse.ArgumentTypeError(
+            f"{value!r} is not JSON ({error.msg}); give an object such as " + EXAMPLE_KWARGS
+        ) from None
+    if not isinstance(parsed, dict):
+        raise argparse.ArgumentTypeError(
+            f"{value!r} is not a JSON object; give one such as " + EXAMPLE_KWARGS
+        )
+    return {key: _tuples(item) for key, item in parsed.items()}
+
+
+def _tuples(value: Any) -> Any:
+    if isinstance(value, list):
+        return tuple(_tuples(item) for item in value)
+    if isinstance(value, dict):
+        return {key: _tuples(item) for key, item in value.items()}
+    return value
 
 
 def seed_list(value: str) -> list[int]:

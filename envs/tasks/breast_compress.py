@@ -164,6 +164,13 @@ class BreastCompressEnv(ProbeEnv):
     (``info["tissue_unstable"]`` names the status) or the arm's state is not finite.
     Truncated at ``max_episode_steps`` (250, 5 s).
 
+    ## Effects
+
+    Its terms need ``deformation``, ``force_feedback`` and ``lesion_tracking`` (and the
+    image where it is observed; each term's needs are the class's TERM_EFFECTS). Scenes
+    that have them: ``full`` (the default) and ``imaging``; ``scene=`` or ``effects=``
+    choose one (:mod:`envs.effects`), and one that lacks an effect is refused when made.
+
     ## Arguments
 
     ``gymnasium.make("probegym/BreastCompress-v0", contact="lm", profile="robust",

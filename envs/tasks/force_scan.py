@@ -202,6 +202,14 @@ class ForceScanEnv(ProbeEnv):
     PBD's honest measure; 0 before the first step) and ``tissue`` (the step's status and
     diagnostics).
 
+    ## Effects
+
+    Its terms need ``force_feedback`` (and the image where it is observed; each term's
+    needs are the class's TERM_EFFECTS). Scenes that have it: ``full`` (the default),
+    ``imaging`` and ``rigid`` (the breast does not deform: the cheapest scene);
+    ``scene=`` or ``effects=`` choose one (:mod:`envs.effects`), and one that lacks an
+    effect is refused when made.
+
     ## Arguments
 
     ``gymnasium.make("probegym/ForceScan-v0", contact="lm", profile="robust", mesh=1363,

@@ -179,6 +179,15 @@ class LesionSearchEnv(ProbeEnv):
     is not finite (``info["robot_unstable"]``). Truncated at ``max_episode_steps`` (300,
     6 s).
 
+    ## Effects
+
+    Its terms need ``force_feedback`` and ``lesion_tracking`` (and the image where it is
+    observed; each term's needs are the class's TERM_EFFECTS). Scenes that have them:
+    ``full`` (the default), ``imaging`` and ``rigid`` (the breast does not deform and the
+    lesions stay at rest: the cheapest scene, to learn to approach, press and sweep);
+    ``scene=`` or ``effects=`` choose one (:mod:`envs.effects`), and one that lacks an
+    effect is refused when made.
+
     ## Arguments
 
     ``gymnasium.make("probegym/LesionSearch-v0", contact="lm", profile="robust",
@@ -203,11 +212,11 @@ class LesionSearchEnv(ProbeEnv):
     #: The simulated effects each term needs (see :data:`envs.observations.EFFECTS`).
     TERM_EFFECTS: ClassVar[dict[str, tuple[str, ...]]] = {
         **ProbeEnv.COMMON_TERM_EFFECTS,
-        "lesion": ("deformation", "lesion_tracking"),
-        "centring": ("deformation", "lesion_tracking"),
+        "lesion": ("lesion_tracking",),
+        "centring": ("lesion_tracking",),
         "force": ("force_feedback",),
         "smoothness": (),
-        "success": ("deformation", "lesion_tracking", "force_feedback"),
+        "success": ("lesion_tracking", "force_feedback"),
         "failure": ("force_feedback",),
     }
     WEIGHTS: ClassVar[dict[str, float]] = {

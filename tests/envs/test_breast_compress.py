@@ -182,8 +182,9 @@ def test_the_tissue_moves_the_robot(reaction: bool) -> None:
     """With a soft impedance (200 N/m) a commanded 20 mm press stops where the tissue's
     force equals the controller's; without the reaction the probe reaches its target and
     the balance fails."""
-    env = _make("lm", stiffness_n_per_m=200.0, reaction=reaction)
+    env = _make("lm", stiffness_n_per_m=200.0)
     unwrapped = env.unwrapped
+    unwrapped.coupling.reaction = reaction  # the one-way coupling, under the task's terms
     env.reset(seed=5)
     start, rotation = unwrapped.probe_pose()
     pressing = rotation[:, 1]
