@@ -40,6 +40,7 @@ from gymnasium import spaces
 from numpy.typing import NDArray
 
 import tissue
+from envs.arguments import check_display, route_kwargs
 from envs.controller import (
     CartesianImpedance,
     ControllerConfig,
@@ -92,17 +93,12 @@ class ActionConfig:
         check_positive(self, (f.name for f in fields(self)))
 
 
-def _split_kwargs(
-    kwargs: dict[str, Any], configs: dict[str, type]
-) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
-    """Route keyword arguments to the config they belong to; what is left over."""
-    routed: dict[str, dict[str, Any]] = {name: {} for name in configs}
-    rest = dict(kwargs)
-    for name, config_type in configs.items():
-        for f in fields(config_type):
-            if f.name in rest:
-                routed[name][f.name] = rest.pop(f.name)
-    return routed, rest
+#: ``ProbeEnv``'s own keyword arguments (the configs' fields are the others).
+_COMMON_ARGUMENTS = (
+    "contact", "profile", "mesh", "young_pa", "poisson", "lesion_stiffness_ratio",
+    "control_mode", "render_mode", "camera_name", "width", "height", "robot", "flange_site",
+    "robot_base_m", "robot_dt", "scene", "effects", "image", "domain_randomization",
+)  # fmt: skip
 
 
 class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
@@ -154,50 +150,10 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
             "imaging": ImagingConfig,
             "task": self.task_config_type,
         }
-        routed, unknown = _split_kwargs(kwargs, configs)
-        if unknown:
-            valid = sorted(
-                {
-                    "contact",
-                    "profile",
-                    "mesh",
-                    "young_pa",
-                    "poisson",
-                    "lesion_stiffness_ratio",
-                    "control_mode",
-                    "render_mode",
-                    "camera_name",
-                    "width",
-                    "height",
-                    "robot",
-                    "flange_site",
-                    "robot_base_m",
-                    "robot_dt",
-                    "scene",
-                    "effects",
-                    "image",
-                    "domain_randomization",
-                }  # fmt: skip
-                | {f.name for config in configs.values() for f in fields(config)}
-            )
-            raise EnvConfigError(
-                f"unknown keyword argument(s) {sorted(unknown)} for {type(self).__name__}; "
-                f"valid ones: {', '.join(valid)}"
-            )
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise EnvConfigError(
-                f"unknown render_mode {render_mode!r}; choose one of "
-                f"{', '.join(self.metadata['render_modes'])} or None"
-            )
-        if camera_name not in CAMERAS:
-            raise EnvConfigError(
-                f"unknown camera_name {camera_name!r}; choose one of {', '.join(CAMERAS)}"
-            )
-        for name, value in (("width", width), ("height", height)):
-            if isinstance(value, bool) or not isinstance(value, int) or not 16 <= value <= 4096:
-                raise EnvConfigError(
-                    f"{name} must be a whole number of pixels in [16, 4096]; got {value!r}"
-                )
+        routed = route_kwargs(type(self).__name__, kwargs, configs, _COMMON_ARGUMENTS)
+        check_display(
+            render_mode, self.metadata["render_modes"], camera_name, CAMERAS, width, height
+        )
         self.controller_config = ControllerConfig(mode=control_mode, **routed["controller"])
         self.action_config = ActionConfig(**routed["action"])
         self.imaging = ImagingConfig(**routed["imaging"])
