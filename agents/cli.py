@@ -1,4 +1,5 @@
-"""The ``probegym`` command line: ``demo``, ``mesh``, ``compress``, ``study``, ``bench``.
+"""The ``probegym`` command line: ``demo``, ``mesh``, ``compress``, ``study``, ``bench``,
+``train``, ``evaluate``, ``envs``.
 
 Every subcommand validates its arguments before doing any work and exits with status 2
 and a message naming the bad value when they are wrong.
@@ -12,6 +13,7 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from agents.env_listing import add_envs_parser, run_envs
 from agents.evaluation import add_evaluate_parser, run_evaluate
 from agents.train.command import add_train_parser, seed_list
 from tissue.errors import ConfigError, TissueInputError
@@ -235,6 +237,7 @@ def _build_parser() -> argparse.ArgumentParser:
     peer.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
     add_train_parser(commands)
     add_evaluate_parser(commands)
+    add_envs_parser(commands)
     return parser
 
 
@@ -381,8 +384,8 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         return 0
     if args.command == "evaluate":
         return run_evaluate(args)
-    if args.command == "evaluate":
-        return run_evaluate(args)
+    if args.command == "envs":
+        return run_envs(args)
     if args.command == "train":
         from agents.train.command import run_train
 

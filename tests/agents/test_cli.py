@@ -316,3 +316,32 @@ def test_the_readmes_main_command(tmp_path) -> None:
     for name in ("stability.md", "errors.png", "times.png", "accuracy_vs_time.png",
                  "report.md", "report.html", "summary.json"):  # fmt: skip
         assert (out / name).stat().st_size > 0
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [("[1]", "is not a JSON object"), ("{", "is not JSON")],
+)
+def test_train_env_kwargs_must_be_a_json_object(capsys, value, message) -> None:
+    with pytest.raises(SystemExit) as exited:
+        main(["train", "probegym/ForceScan-v0", "--env-kwargs", value])
+    assert exited.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_train_env_kwargs_may_not_set_what_has_an_option(monkeypatch, capsys) -> None:
+    _fail_if_called(monkeypatch, "agents.train.command.train")
+    argv = ["train", "probegym/ForceScan-v0", "--env-kwargs", '{"contact": "pbd"}']
+    assert main(argv) == 2
+    assert "use --contact instead" in capsys.readouterr().err
+
+
+def test_train_env_kwargs_reach_the_run_settings() -> None:
+    from agents.cli import _build_parser
+    from agents.train.command import _settings
+
+    kwargs = '{"start_offset_range_m": [0, 0.01]}'
+    args = _build_parser().parse_args(["train", "probegym/LesionSearch-v0", "--env-kwargs", kwargs])
+    settings = _settings(args, "ppo", "lm", 0, Path("out"))
+    assert settings.env_kwargs["start_offset_range_m"] == (0, 0.01)
+    assert settings.env_kwargs["contact"] == "lm"
