@@ -28,7 +28,7 @@ def env_listing() -> dict[str, Any]:
     rows = []
     for env_id in envs.ENV_IDS:
         spec = gym.spec(env_id)
-        task = gym.envs.registration.load_env_creator(str(spec.entry_point))
+        task: Any = gym.envs.registration.load_env_creator(str(spec.entry_point))
         terms = {k: list(v) for k, v in task.TERM_EFFECTS.items()}
         needs = needed_effects({k: v for k, v in task.TERM_EFFECTS.items() if k != "image"})
         rows.append(
