@@ -231,6 +231,17 @@ def _build_parser() -> argparse.ArgumentParser:
     sweep.add_argument("--mesh", type=_level, default=1363, help="phantom level (default 1363)")
     sweep.add_argument("--profile", default="robust", help="paper or robust (default robust)")
     sweep.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
+    effects = bench_kinds.add_parser(
+        "effects", help="what each simulated effect costs; free air against robot only"
+    )
+    effects.add_argument(
+        "--contact", "--methods", dest="methods", default=None, help="comma-separated; default all"
+    )
+    effects.add_argument(
+        "--profile", "--profiles", dest="profiles", default="robust,paper", help="comma-separated"
+    )
+    effects.add_argument("--mesh", type=_level, default=1363, help="phantom level (default 1363)")
+    effects.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
     peer = bench_kinds.add_parser("peer", help="ours against MuJoCo's flex, same phantom")
     peer.add_argument("--levels", type=_levels, default=None, help="default 623,4126,26220")
     peer.add_argument("--sim-seconds", type=float, default=1.0, help="simulated seconds per run")
@@ -381,6 +392,12 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         run_env_benchmark(
             _names(args.ids), methods, profiles, args.levels, args.json, command=args.command_line
         )
+        return 0
+    if args.command == "bench" and args.bench == "effects":
+        from agents.bench.effects import run_effects_benchmark
+
+        methods, profiles = _methods_and_profiles(parser, args.methods, args.profiles)
+        run_effects_benchmark(methods, profiles, args.mesh, args.json, command=args.command_line)
         return 0
     if args.command == "evaluate":
         return run_evaluate(args)

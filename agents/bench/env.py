@@ -81,7 +81,7 @@ def benchmark_env(env_id: str, contact: str, profile: str, level: int) -> dict[s
         statuses.append(info.get("tissue", {}).get("status"))
         if terminated or truncated:
             break
-    image_ms = _image_ms(unwrapped)
+    image_ms = image_frame_ms(unwrapped)
     env.close()
     randomized = gym.make(
         env_id, contact=contact, profile=profile, mesh=level, domain_randomization=True
@@ -123,7 +123,7 @@ def benchmark_env(env_id: str, contact: str, profile: str, level: int) -> dict[s
     return record
 
 
-def _image_ms(env: Any) -> float:
+def image_frame_ms(env: Any) -> float:
     """Median time of a B-mode frame (``image=True``'s observation, 128 x 128) [ms], at the
     run's last state: measured beside the steps, which are timed without it."""
     from envs.ultrasound import BModeConfig, BModeImager
