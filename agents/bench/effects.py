@@ -137,7 +137,8 @@ def benchmark_effects(contact: str, profile: str, level: int) -> dict[str, Any]:
     contact_run = _phase(full, slide, warm=press)
     lesion_ms = _lesion_tracking_ms(full)
     image_ms = image_frame_ms(full.unwrapped)
-    tets = int(full.unwrapped.tissue.tets.shape[0])
+    unwrapped: Any = full.unwrapped
+    tets = int(unwrapped.tissue.tets.shape[0])
     full.close()
     rigid = gym.make(ENV_ID, scene="rigid", **kwargs)
     _phase(rigid, free_actions)
