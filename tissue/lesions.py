@@ -9,10 +9,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from tissue.mesh import TetMesh, signed_tet_volumes
+from tissue.mesh import TetMesh
 
 
 @dataclass(frozen=True)
@@ -96,16 +97,38 @@ class LesionTracker:
             return landmarks.positions(node_positions)[self._point_landmarks]
         if not self.lesions:
             return np.zeros((0, 3))
-        corners = node_positions[self._tets]
-        volume = signed_tet_volumes(node_positions, self._tets)
-        moments = volume[:, None] * corners.mean(axis=1)
-        count = len(self.lesions)
-        total = np.bincount(self._owner, weights=volume, minlength=count)
-        centroid = np.stack(
-            [
-                np.bincount(self._owner, weights=moments[:, axis], minlength=count)
-                for axis in range(3)
-            ],
-            axis=1,
+        return _volume_centroids(
+            np.ascontiguousarray(node_positions), self._tets, self._owner, len(self.lesions)
         )
-        return centroid / total[:, None]
+
+
+@numba.njit(cache=True)
+def _volume_centroids(
+    positions: NDArray[np.float64], tets: NDArray[np.int64], owner: NDArray[np.int64], count: int
+) -> NDArray[np.float64]:  # pragma: no cover - compiled
+    """Each owner's volume-weighted centroid of its tets [m], (count, 3): the sum over its
+    tets of signed volume x corner mean, over its volume. One pass, compiled: it runs
+    every tissue step (about 100 us as NumPy at 1,363 tets' 10 lesions)."""
+    total = np.zeros(count)
+    moment = np.zeros((count, 3))
+    for t in range(tets.shape[0]):
+        a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+        e1 = positions[b] - positions[a]
+        e2 = positions[c] - positions[a]
+        e3 = positions[d] - positions[a]
+        volume = (
+            e1[0] * (e2[1] * e3[2] - e2[2] * e3[1])
+            + e1[1] * (e2[2] * e3[0] - e2[0] * e3[2])
+            + e1[2] * (e2[0] * e3[1] - e2[1] * e3[0])
+        ) / 6.0
+        k = owner[t]
+        total[k] += volume
+        for axis in range(3):
+            mean = 0.25 * (
+                positions[a, axis] + positions[b, axis] + positions[c, axis] + positions[d, axis]
+            )
+            moment[k, axis] += volume * mean
+    for k in range(count):
+        for axis in range(3):
+            moment[k, axis] /= total[k]
+    return moment
