@@ -40,3 +40,14 @@ def check_positive(settings: Any, names: Any) -> None:
         value = getattr(settings, name)
         if not (finite_number(value) and value > 0):
             raise EnvConfigError(f"{name} must be a positive number; got {value!r}")
+
+
+def check_failure_reward(value: object) -> None:
+    """A task's ``failure_reward``: None or a finite number <= 0."""
+    if value is None:
+        return
+    if isinstance(value, bool) or not finite_number(value) or float(value) > 0.0:  # type: ignore[arg-type]
+        raise EnvConfigError(
+            f"failure_reward must be a number <= 0 (or None: -(max_episode_steps + 1)); "
+            f"got {value!r}"
+        )

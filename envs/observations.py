@@ -22,11 +22,6 @@ from envs.controller import cross3
 from envs.errors import EnvConfigError
 from envs.scene import SceneNames
 
-#: The simulated effects a term may need (a scene simulates only the effects it calls
-#: for): the breast deforming, its force on the robot, lesions tracked in the image plane,
-#: the ultrasound image.
-EFFECTS = ("deformation", "force_feedback", "lesion_tracking", "image")
-
 #: A contact force below this [N] does not count as touching the skin.
 TOUCH_FORCE_N = 1e-3
 

@@ -4,7 +4,7 @@ An arm (:mod:`envs.scene`) holds the linear probe, driven by a controller
 (:mod:`envs.controller`) and coupled two ways to the FE breast (:mod:`envs.coupling`). A task
 (:mod:`envs.tasks`) subclasses :class:`ProbeEnv` and says where an episode starts, what is
 observed beyond the common terms, what is rewarded and when it ends. Each observation and
-reward term declares the simulated effects it needs (:data:`envs.observations.EFFECTS`).
+reward term declares the simulated effects it needs (:data:`envs.effects.EFFECTS`).
 
 Keyword arguments common to every task (unknown ones are errors that list the valid ones):
 ``contact`` (penalty | lm | prescribed | pbd), ``profile`` (paper | robust), ``mesh`` (a
@@ -107,7 +107,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 50}  # noqa: RUF012
 
     #: The simulated effects of the observation terms every task shares (a task's
-    #: ``TERM_EFFECTS`` adds its own terms; see :data:`envs.observations.EFFECTS`).
+    #: ``TERM_EFFECTS`` adds its own terms; see :data:`envs.effects.EFFECTS`).
     COMMON_TERM_EFFECTS: ClassVar[dict[str, tuple[str, ...]]] = {
         "probe_pose": (),
         "wrench": ("force_feedback",),
@@ -117,6 +117,9 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
     }
     #: The effects each of the task's terms needs; tasks replace it with theirs.
     TERM_EFFECTS: ClassVar[dict[str, tuple[str, ...]]] = COMMON_TERM_EFFECTS
+
+    #: The task's registered episode length [steps] (tasks set theirs).
+    episode_steps: ClassVar[int] = 0
 
     #: The task's own settings (a frozen dataclass); keyword arguments of its fields go there.
     task_config_type: ClassVar[type] = type(None)
@@ -424,6 +427,20 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         if rotation_angle(rotation, self._start_rot) > cfg.max_turn_rad:
             rotation = self.controller.target_rot  # type: ignore[union-attr]
         return position, rotation
+
+    def horizon(self) -> int:
+        """The episode's length [steps]: ``max_episode_steps`` as made, else the task's."""
+        spec = self.spec
+        if spec is not None and spec.max_episode_steps is not None:
+            return int(spec.max_episode_steps)
+        return self.episode_steps
+
+    def failure_reward(self) -> float:
+        """The ``failure`` reward term on a failing last step: the task config's
+        ``failure_reward`` where given, else -(horizon + 1), so that with every other
+        step's reward in [-1, 0] a failing episode returns less than any other."""
+        given = getattr(self.task_config, "failure_reward", None)
+        return -float(self.horizon() + 1) if given is None else float(given)
 
     def _make_finite(self) -> None:
         """After a non-finite arm state (the episode ends), leave the arm at the start pose."""

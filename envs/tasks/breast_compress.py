@@ -12,7 +12,7 @@ from gymnasium import spaces
 from numpy.typing import NDArray
 
 import tissue
-from envs.errors import EnvConfigError
+from envs.errors import EnvConfigError, check_failure_reward
 from envs.observations import LesionInImage, lesion_in_image
 from envs.probe_env import ProbeEnv
 from envs.rotations import quat_matrix, turn_matrix
@@ -35,6 +35,8 @@ class BreastCompressConfig:
         hold_steps: steps the lesion must stay in the band, in view, force safe.
         safety_force_n: force above which the ``force`` term penalises [N].
         hard_force_n: force that ends the episode as a failure [N].
+        failure_reward: the ``failure`` term on a failing last step (<= 0); None:
+            -(max_episode_steps + 1), so that a failing episode returns less than any other.
         start_offset_m: the start's lateral noise, uniform in +- this [m].
         start_tilt_rad: the start's tilt noise, uniform in +- this about each in-plane axis.
         workspace_m: how far the probe's target may go from the start sideways [m].
@@ -49,6 +51,7 @@ class BreastCompressConfig:
     hold_steps: int = 25
     safety_force_n: float = 5.0
     hard_force_n: float = 10.0
+    failure_reward: float | None = None
     start_offset_m: float = 0.002
     start_tilt_rad: float = math.radians(2.0)
     workspace_m: float = 0.03
@@ -57,6 +60,7 @@ class BreastCompressConfig:
     max_turn_rad: float = math.radians(30.0)
 
     def __post_init__(self) -> None:
+        check_failure_reward(self.failure_reward)
         low, high = self.compression_range_m
         if not (0.0 < low <= high < 0.05):
             raise EnvConfigError(
@@ -145,9 +149,9 @@ class BreastCompressEnv(ProbeEnv):
     ``centring`` (-0.2 x |lateral| / 20 mm; -0.2 out of view), ``force`` (-0.2 x the force
     above 5 N as a share of the 5 N up to the hard limit), ``smoothness`` (-0.1 x the mean
     squared change of the action / 4), ``success`` (+1 on the step that succeeds) and
-    ``failure`` (-(max_episode_steps + 1) on a failing last step). A step's reward lies in
-    [-1, 0] but for the last, so an episode ending in failure returns less than any that
-    does not.
+    ``failure`` (-(max_episode_steps + 1) on a failing last step, or ``failure_reward``).
+    A step's reward lies in [-1, 0] but for the last, so an episode ending in failure
+    returns less than any that does not (unless ``failure_reward`` is set).
 
     ## Starting state
 
@@ -189,10 +193,11 @@ class BreastCompressEnv(ProbeEnv):
     - v0: first release.
     """
 
+    episode_steps: ClassVar[int] = MAX_EPISODE_STEPS
     task_config_type: ClassVar[type] = BreastCompressConfig
     task_config: BreastCompressConfig
 
-    #: The simulated effects each term needs (see :data:`envs.observations.EFFECTS`).
+    #: The simulated effects each term needs (see :data:`envs.effects.EFFECTS`).
     TERM_EFFECTS: ClassVar[dict[str, tuple[str, ...]]] = {
         **ProbeEnv.COMMON_TERM_EFFECTS,
         "lesion": ("deformation", "lesion_tracking"),
@@ -329,21 +334,14 @@ class BreastCompressEnv(ProbeEnv):
             depth, centring = 1.0, 1.0
         over = max(0.0, force - cfg.safety_force_n) / (cfg.hard_force_n - cfg.safety_force_n)
         change = float(np.mean((action - self._last_action) ** 2)) / 4.0
-        horizon = self._horizon()
         return {
             "depth_error": -weights["depth_error"] * depth,
             "centring": -weights["centring"] * centring,
             "force": -weights["force"] * min(1.0, over),
             "smoothness": -weights["smoothness"] * min(1.0, change),
             "success": 1.0 if success else 0.0,
-            "failure": -float(horizon + 1) if failed else 0.0,
+            "failure": self.failure_reward() if failed else 0.0,
         }
-
-    def _horizon(self) -> int:
-        spec = self.spec
-        if spec is not None and spec.max_episode_steps is not None:
-            return int(spec.max_episode_steps)
-        return MAX_EPISODE_STEPS
 
     def _observation(self) -> dict[str, NDArray[Any]]:
         observed = self._common_observation()

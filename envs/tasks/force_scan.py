@@ -13,7 +13,13 @@ from gymnasium import spaces
 from numpy.typing import NDArray
 
 import tissue
-from envs.errors import EnvConfigError, check_positive, finite_number, number_pair
+from envs.errors import (
+    EnvConfigError,
+    check_failure_reward,
+    check_positive,
+    finite_number,
+    number_pair,
+)
 from envs.probe_env import ProbeEnv
 from envs.rotations import quat_matrix
 
@@ -45,6 +51,8 @@ class ForceScanConfig:
         min_good_share: the share of the steps since the force first reached the band on
             which both the tilt and the force must have been good for a success.
         hard_force_n: contact force that ends the episode as a failure [N].
+        failure_reward: the ``failure`` term on a failing last step (<= 0); None:
+            -(max_episode_steps + 1), so that a failing episode returns less than any other.
         workspace_m: how far the probe's target may go from the start sideways [m].
         max_press_m: and into the tissue, along the start's pressing direction [m].
         max_lift_m: and away from it [m].
@@ -58,12 +66,14 @@ class ForceScanConfig:
     force_band_n: tuple[float, float] = (1.0, 3.0)
     min_good_share: float = 0.9
     hard_force_n: float = 10.0
+    failure_reward: float | None = None
     workspace_m: float = 0.06
     max_press_m: float = 0.035
     max_lift_m: float = 0.02
     max_turn_rad: float = math.radians(75.0)
 
     def __post_init__(self) -> None:
+        check_failure_reward(self.failure_reward)
         check_positive(
             self,
             (
@@ -168,7 +178,7 @@ class ForceScanEnv(ProbeEnv):
     band, as a share of the band's width, capped at 1), ``tilt`` (-0.3 x the tilt beyond 5
     degrees, as a share of 5 degrees, capped at 1), ``smoothness`` (-0.1 x the mean squared
     change of the action / 4), ``success`` (+1 on the step that succeeds) and ``failure``
-    (-(max_episode_steps + 1) on a failing last step).
+    (-(max_episode_steps + 1) on a failing last step, or ``failure_reward``).
 
     ## Starting state
 
@@ -230,10 +240,11 @@ class ForceScanEnv(ProbeEnv):
     - v0: first release.
     """
 
+    episode_steps: ClassVar[int] = MAX_EPISODE_STEPS
     task_config_type: ClassVar[type] = ForceScanConfig
     task_config: ForceScanConfig
 
-    #: The simulated effects each term needs (see :data:`envs.observations.EFFECTS`).
+    #: The simulated effects each term needs (see :data:`envs.effects.EFFECTS`).
     TERM_EFFECTS: ClassVar[dict[str, tuple[str, ...]]] = {
         **ProbeEnv.COMMON_TERM_EFFECTS,
         "path": ("force_feedback",),
@@ -445,21 +456,14 @@ class ForceScanEnv(ProbeEnv):
         outside = max(0.0, low - normal, normal - high) / (high - low)
         excess = max(0.0, self._tilt - cfg.max_tilt_rad) / cfg.max_tilt_rad
         change = float(np.mean((action - self._last_action) ** 2)) / 4.0
-        horizon = self._horizon()
         return {
             "progress": weights["progress"] * (self._progress - before) / self._length,
             "force": -weights["force"] * min(1.0, outside),
             "tilt": -weights["tilt"] * min(1.0, excess),
             "smoothness": -weights["smoothness"] * min(1.0, change),
             "success": 1.0 if success else 0.0,
-            "failure": -float(horizon + 1) if failed else 0.0,
+            "failure": self.failure_reward() if failed else 0.0,
         }
-
-    def _horizon(self) -> int:
-        spec = self.spec
-        if spec is not None and spec.max_episode_steps is not None:
-            return int(spec.max_episode_steps)
-        return MAX_EPISODE_STEPS
 
     def _observation(self) -> dict[str, NDArray[np.float32]]:
         observed = self._common_observation()

@@ -13,7 +13,13 @@ from gymnasium import spaces
 from numpy.typing import NDArray
 
 import tissue
-from envs.errors import EnvConfigError, check_positive, finite_number, number_pair
+from envs.errors import (
+    EnvConfigError,
+    check_failure_reward,
+    check_positive,
+    finite_number,
+    number_pair,
+)
 from envs.observations import LesionInImage, lesion_in_image
 from envs.probe_env import ProbeEnv
 from envs.rotations import quat_matrix, turn_matrix
@@ -42,6 +48,8 @@ class LesionSearchConfig:
         force_band_n: (low, high) success band of the normal contact force [N].
         hold_steps: steps the lesion must stay centred, in view, the force in band.
         hard_force_n: contact force that ends the episode as a failure [N].
+        failure_reward: the ``failure`` term on a failing last step (<= 0); None:
+            -(max_episode_steps + 1), so that a failing episode returns less than any other.
         workspace_m: how far the probe's target may go from the start sideways [m].
         max_press_m: and into the tissue, along the start's pressing direction [m].
         max_lift_m: and away from it [m].
@@ -55,12 +63,14 @@ class LesionSearchConfig:
     force_band_n: tuple[float, float] = (0.5, 4.0)
     hold_steps: int = 15
     hard_force_n: float = 10.0
+    failure_reward: float | None = None
     workspace_m: float = 0.04
     max_press_m: float = 0.035
     max_lift_m: float = 0.02
     max_turn_rad: float = math.radians(30.0)
 
     def __post_init__(self) -> None:
+        check_failure_reward(self.failure_reward)
         check_positive(
             self,
             (
@@ -158,8 +168,9 @@ class LesionSearchEnv(ProbeEnv):
     (-0.3 x the normal force's distance from the 0.5-4 N band, as a share of the band's
     width, capped at 1), ``smoothness`` (-0.1 x the mean squared change of the action / 4),
     ``success`` (+1 on the step that succeeds) and ``failure`` (-(max_episode_steps + 1) on
-    a failing last step). A step's reward lies in [-0.9, 0] but for the last, so an
-    episode ending in failure returns less than any that does not.
+    a failing last step, or ``failure_reward``). A step's reward lies in [-0.9, 0] but for
+    the last, so an episode ending in failure returns less than any that does not (unless
+    ``failure_reward`` is set).
 
     ## Starting state
 
@@ -206,10 +217,11 @@ class LesionSearchEnv(ProbeEnv):
     - v0: first release.
     """
 
+    episode_steps: ClassVar[int] = MAX_EPISODE_STEPS
     task_config_type: ClassVar[type] = LesionSearchConfig
     task_config: LesionSearchConfig
 
-    #: The simulated effects each term needs (see :data:`envs.observations.EFFECTS`).
+    #: The simulated effects each term needs (see :data:`envs.effects.EFFECTS`).
     TERM_EFFECTS: ClassVar[dict[str, tuple[str, ...]]] = {
         **ProbeEnv.COMMON_TERM_EFFECTS,
         "lesion": ("lesion_tracking",),
@@ -351,20 +363,13 @@ class LesionSearchEnv(ProbeEnv):
         low, high = cfg.force_band_n
         outside = max(0.0, low - normal, normal - high) / (high - low)
         change = float(np.mean((action - self._last_action) ** 2)) / 4.0
-        horizon = self._horizon()
         return {
             "centring": -weights["centring"] * centring,
             "force": -weights["force"] * min(1.0, outside),
             "smoothness": -weights["smoothness"] * min(1.0, change),
             "success": 1.0 if success else 0.0,
-            "failure": -float(horizon + 1) if failed else 0.0,
+            "failure": self.failure_reward() if failed else 0.0,
         }
-
-    def _horizon(self) -> int:
-        spec = self.spec
-        if spec is not None and spec.max_episode_steps is not None:
-            return int(spec.max_episode_steps)
-        return MAX_EPISODE_STEPS
 
     def _observation(self) -> dict[str, NDArray[np.float32]]:
         observed = self._common_observation()

@@ -11,8 +11,8 @@ import pytest
 import envs  # noqa: F401 - registers the environments
 import tissue
 from agents.policies import CompressionPolicy
+from envs.effects import EFFECTS
 from envs.errors import EnvConfigError
-from envs.observations import EFFECTS
 from envs.tasks.breast_compress import BreastCompressEnv
 
 ENV_ID = "probegym/BreastCompress-v0"

@@ -9,8 +9,8 @@ import pytest
 import envs  # noqa: F401 - registers the environments
 import tissue
 from agents.policies import ForceScanPolicy
+from envs.effects import EFFECTS
 from envs.errors import EnvConfigError
-from envs.observations import EFFECTS
 from envs.probe_env import PHANTOM_TARGET_LESIONS
 from envs.tasks.force_scan import MAX_EPISODE_STEPS, ForceScanEnv
 

@@ -9,8 +9,8 @@ import pytest
 import envs  # noqa: F401 - registers the environments
 import tissue
 from agents.policies import LesionSearchPolicy
+from envs.effects import EFFECTS
 from envs.errors import EnvConfigError
-from envs.observations import EFFECTS
 from envs.probe_env import PHANTOM_TARGET_LESIONS
 from envs.tasks.lesion_search import MAX_EPISODE_STEPS, LesionSearchEnv
 
@@ -254,3 +254,24 @@ def test_nan_actions_are_refused() -> None:
     env.reset(seed=0)
     with pytest.raises(EnvConfigError, match="finite"):
         env.step(np.array([np.nan, 0, 0, 0, 0, 0], dtype=np.float32))
+
+
+@pytest.mark.parametrize(("given", "expected"), [(None, -301.0), (-10.0, -10.0)])
+def test_the_failure_term_is_the_configured_reward(given, expected) -> None:
+    env = gym.make(
+        "probegym/LesionSearch-v0",
+        mesh=623,
+        hard_force_n=1.0,
+        force_band_n=(0.2, 0.8),
+        failure_reward=given,
+    )
+    env.reset(seed=0)
+    for _ in range(60):
+        _, reward, terminated, _, info = env.step(np.array([0, 1, 0, 0, 0, 0], dtype=np.float32))
+        if terminated:
+            break
+    assert info["force_exceeded"]
+    assert info["reward_terms"]["failure"] == expected
+    assert reward == pytest.approx(sum(info["reward_terms"].values()))
+    with pytest.raises(EnvConfigError, match="failure_reward must be a number <= 0"):
+        gym.make("probegym/LesionSearch-v0", mesh=623, failure_reward=1.0)
