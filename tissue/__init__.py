@@ -27,6 +27,7 @@ from tissue.contact.registry import (
     register_contact,
     unregister_contact,
 )
+from tissue.contact.sleep import SLEEP_SPEED_M_S
 from tissue.errors import ConfigError, MaterialError, MeshError, TissueInputError
 from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.lesions import Lesion
@@ -47,6 +48,7 @@ from tissue.threads import ThreadPolicy, configure_threads
 
 __all__ = [
     "PUBLISHED_SCENE",
+    "SLEEP_SPEED_M_S",
     "ConfigError",
     "ContactModel",
     "Lesion",

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from tissue.contact.registry import contact_class, contact_method
+from tissue.contact.sleep import check_sleep_speed
 from tissue.errors import ConfigError, check_setting_names
 from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.mesh import TetMesh
@@ -61,6 +62,14 @@ class TissueSpec:
         mesh_scale: (mesh file) factor to metres (0.001 for a mesh in millimetres).
         scene_lesion: (published scene) the tumour whose published node set the paper
             profile's prescribed displacement holds.
+        sleep_speed_m_s: let the tissue sleep [m/s]: a step with the tissue at rest (every
+            node slower than this), out of contact and the probe clear of the skin by more
+            than its travel in the step and the method's reach does no tissue work at all
+            (:meth:`tissue.contact.base.ContactModel.step`; its
+            ``TissueStep.diagnostics.details["asleep"]`` is 1.0), and the tissue wakes as
+            the probe approaches. None (the default): it never sleeps, every step is solved.
+            The environments use :data:`tissue.SLEEP_SPEED_M_S` (1e-6 m/s). Only how the
+            tissue is stepped: no mesh or calibration depends on it.
     """
 
     mesh: int | str | os.PathLike[str] | TetMesh = 1363
@@ -77,8 +86,10 @@ class TissueSpec:
     fixed_nodes_file: str | os.PathLike[str] | None = None
     mesh_scale: float = 1.0
     scene_lesion: int | None = None
+    sleep_speed_m_s: float | None = None
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "sleep_speed_m_s", check_sleep_speed(self.sleep_speed_m_s))
         method = contact_method(self.contact)
         object.__setattr__(self, "contact", method)
         object.__setattr__(self, "profile", Profile.parse(self.profile).value)

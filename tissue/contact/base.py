@@ -19,6 +19,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from tissue.contact.sleep import FreeAirSleep
 from tissue.contact.tunnelling import face_samples, skin_behind_probe
 from tissue.errors import TissueInputError
 from tissue.mesh import TetMesh, boundary_faces
@@ -124,13 +125,16 @@ TUNNELLED_FORCE_N = 1e-3
 MAX_SUB_MOTIONS = 64
 
 
-class ContactModel(abc.ABC):
+class ContactModel(FreeAirSleep, abc.ABC):
     """A tissue coupled to a rigid probe through one contact strategy.
 
     Subclasses implement :meth:`_advance`; everything else (pose handling, sub-motions
-    against tunnelling, penetration, wrench, timing, landmarks, snapshots) is shared. A
-    subclass states its facts as class attributes and is registered under its name with
-    :func:`tissue.contact.registry.register_contact`.
+    against tunnelling, penetration, wrench, timing, landmarks, snapshots, sleep in free air)
+    is shared. A subclass states its facts as class attributes and is registered under its
+    name with :func:`tissue.contact.registry.register_contact`. One that may sleep (see
+    :meth:`step`) states its reach (:meth:`sleep_reach_m`), any contact it holds beyond the
+    last step's forces (:meth:`_in_contact`) and what its step records besides the tissue's
+    state (:meth:`_advance_asleep`).
 
     Class attributes:
         name: the registry key (``TissueSpec(contact=name)``, ``--contact name``).
@@ -210,6 +214,16 @@ class ContactModel(abc.ABC):
         # the probe while the volume was pressed as it should be).
         self._volume_boundary = boundary_surface(mesh)
         self._tunnel_samples = face_samples(self.probe)
+        self._sleep_speed_m_s: float | None = None
+        # Whether the last step (or the reset) left the tissue out of contact with status
+        # ok: only then may the next step sleep.
+        self._quiet = True
+        # While the tissue may sleep: the points that must stay clear of the probe [m], the
+        # volume's boundary points [m] and the reach [m] they must be clear by (see
+        # _rest_check). Forgotten whenever the state changes.
+        self._rest: tuple[NDArray[np.float64], NDArray[np.float64], float] | None = None
+        self._rest_known = False
+        self._state_version = 0
 
     # ------------------------------------------------------------------ interface
 
@@ -233,6 +247,8 @@ class ContactModel(abc.ABC):
         self._last_pose = None
         self.drop_caches()
         self._reset_tissue()
+        self._quiet = True
+        self._forget_rest()
 
     def place_probe(self, position_world: ArrayLike, quat_wxyz: ArrayLike) -> None:
         """Put the probe at a pose without stepping the tissue (a start pose): the next
@@ -274,6 +290,7 @@ class ContactModel(abc.ABC):
             "time_s": self._time,
             "probe_pose": (self.probe.position_world.copy(), self.probe.quat_wxyz.copy()),
             "last_pose": None if last is None else (last[0].copy(), last[1].copy()),
+            "quiet": self._quiet,
             **self._snapshot_tissue(),
         }
 
@@ -286,9 +303,45 @@ class ContactModel(abc.ABC):
         last = snapshot["last_pose"]
         self._last_pose = None if last is None else (last[0].copy(), last[1].copy())
         self._restore_tissue(snapshot)
+        # A snapshot from before sleep existed cannot say: the next step then runs.
+        self._quiet = bool(snapshot.get("quiet", False))
+        self._forget_rest()
 
     def drop_caches(self) -> None:  # noqa: B027 - strategies without caches keep it empty
         """Forget every solver cache (see :meth:`snapshot`); the physical state stays."""
+
+    # ------------------------------------------------------------------ sleep
+
+    def _asleep_step(
+        self,
+        end: tuple[NDArray[np.float64], NDArray[np.float64]],
+        h: float,
+        pieces: int,
+        start: float,
+    ) -> ContactResult:
+        """A sleeping step (see :meth:`step`): the probe at ``end``, the clock advanced as
+        ``pieces`` sub-motions of ``h`` [s] would advance it; ``start``: the step's
+        ``time.perf_counter()`` at its start."""
+        for _ in range(pieces):
+            self._time += h
+        if pieces > 1:
+            self.probe.set_pose(*end)  # as the last sub-motion sets it (the same bits)
+        self._last_pose = (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
+        self._advance_asleep(h, pieces)
+        diagnostics = {"iterations": 0, "linear_iterations": 0, "sub_motions": 1, "asleep": 1.0}
+        return ContactResult(
+            status=StepStatus.OK,
+            time_s=self._time,
+            force_world=np.zeros(3),
+            torque_world=np.zeros(3),
+            contact_points=np.zeros((0, 3)),
+            contact_forces=np.zeros((0, 3)),
+            penetration_max_m=0.0,
+            landmarks=self.landmark_positions(),
+            compute_ms=1e3 * (time.perf_counter() - start),
+            diagnostics=diagnostics,
+            skin_penetration_m=0.0,
+        )
 
     def step(self, position_world: ArrayLike, quat_wxyz: ArrayLike) -> ContactResult:
         """Move the probe to the pose and advance the tissue one ``tissue_dt``.
@@ -300,6 +353,24 @@ class ContactModel(abc.ABC):
         and no method would see it (``diagnostics["sub_motions"]`` counts them). A
         sub-motion that fails (diverged, solver failed) ends the step there, with the
         state of the sub-motions before it.
+
+        Sleep (with :attr:`sleep_speed_m_s` set): a step does no tissue work at all when the
+        last step (or the reset) left the tissue out of contact with status ok, every node
+        is slower than :attr:`sleep_speed_m_s`, and every skin point (:attr:`skin`) and
+        every point the method acts on (:meth:`contact_points_world`) lies farther from the
+        probe at its new pose than the probe's travel since the last pose (as
+        :meth:`sub_motion_count` bounds it) plus the method's reach (:meth:`sleep_reach_m`),
+        :data:`tissue.contact.sleep.SLEEP_SAFETY_MARGIN_M` and the distance a node at that
+        speed covers in a step; and the probe is not behind the skin (the check a step
+        makes, :meth:`probe_behind_skin`). Then no point can come within the method's reach
+        anywhere along the motion, and the step would only relax a tissue already at rest. A
+        sleeping step moves the probe, advances the time, leaves positions and velocities as
+        they are and returns no force, no contact points, zero penetration, status ok and
+        ``diagnostics["asleep"] = 1.0``; the method's solve is not run. The next step that
+        does not meet these conditions (the probe approaching) runs in full, sweeping from
+        the last pose. A full step in free air moves a tissue at rest only by round-off
+        (about 1e-17 m, where it moves it at all): so much does a sleeping step differ from
+        it.
 
         Args:
             position_world: probe origin (contact-face centre) [m], (3,).
@@ -314,8 +385,12 @@ class ContactModel(abc.ABC):
         self.probe.set_pose(position, quat_wxyz)
         end = (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
         begin = self._last_pose
-        pieces = 1 if begin is None else self.sub_motion_count(begin, end)
+        travel = 0.0 if begin is None else self.probe_travel_m(begin, end)
+        pieces = 1 if begin is None else self._sub_motions(travel)
         h = self.dt if pieces == 1 else self.dt / pieces
+        if self._sleep_speed_m_s is not None and self._may_sleep(travel):
+            return self._asleep_step(end, h, pieces, start)
+        self._forget_rest()
         status = StepStatus.OK
         with one_thread_below(3 * self.mesh.node_count, SERIAL_STEP_UNKNOWNS):
             for piece in range(1, pieces + 1):
@@ -351,6 +426,7 @@ class ContactModel(abc.ABC):
             elif self.probe_behind_skin(force):
                 status = worst(status, StepStatus.TUNNELLED)
         diagnostics = {**diagnostics, "sub_motions": pieces}
+        self._quiet = status is StepStatus.OK and points.shape[0] == 0
         elapsed_ms = 1e3 * (time.perf_counter() - start)
         return ContactResult(
             status=status,
@@ -375,11 +451,24 @@ class ContactModel(abc.ABC):
         split into: each moves no point of the probe farther than :attr:`max_sub_motion_m`
         (translation + rotation angle x bounding radius bounds every point's travel), at
         most :data:`MAX_SUB_MOTIONS`."""
+        return self._sub_motions(self.probe_travel_m(begin, end))
+
+    def _sub_motions(self, travel: float) -> int:
+        """:meth:`sub_motion_count` for a probe ``travel`` [m] (:meth:`probe_travel_m`)."""
+        return min(MAX_SUB_MOTIONS, max(1, math.ceil(travel / self.max_sub_motion_m - 1e-12)))
+
+    def probe_travel_m(
+        self,
+        begin: tuple[NDArray[np.float64], NDArray[np.float64]],
+        end: tuple[NDArray[np.float64], NDArray[np.float64]],
+    ) -> float:
+        """A bound on how far any point of the probe moves from pose ``begin`` to ``end``
+        (position [m], quaternion) [m]: the translation plus the rotation angle times the
+        shape's bounding radius."""
         translation = float(np.linalg.norm(end[0] - begin[0]))
         cosine = min(1.0, abs(float(begin[1] @ end[1])))
         angle = 2.0 * math.acos(cosine)
-        travel = translation + angle * self.probe.shape.bounding_radius_m
-        return min(MAX_SUB_MOTIONS, max(1, math.ceil(travel / self.max_sub_motion_m - 1e-12)))
+        return translation + angle * self.probe.shape.bounding_radius_m
 
     def probe_behind_skin(self, force_world: NDArray[np.float64]) -> bool:
         """Whether the probe has passed through the tissue: its face lies behind the volume's
@@ -388,11 +477,16 @@ class ContactModel(abc.ABC):
         :mod:`tissue.contact.tunnelling`)."""
         if float(-force_world @ self.probe.pressing_direction_world()) > TUNNELLED_FORCE_N:
             return False
-        boundary = self._volume_boundary
-        points = boundary.positions(self.node_positions)
-        if not np.any(self.probe.near(points, self.max_sub_motion_m)):
+        return self._behind_skin(self._volume_boundary.positions(self.node_positions))
+
+    def _behind_skin(self, boundary_points: NDArray[np.float64]) -> bool:
+        """:meth:`probe_behind_skin`'s geometric half, for the volume's boundary points
+        [m] (b, 3) as they are now."""
+        if not self.probe.any_near(boundary_points, self.max_sub_motion_m):
             return False
-        return skin_behind_probe(self.probe, self._tunnel_samples, points, boundary.triangles)
+        return skin_behind_probe(
+            self.probe, self._tunnel_samples, boundary_points, self._volume_boundary.triangles
+        )
 
     def contact_points_world(self) -> NDArray[np.float64]:
         """The tissue points this method keeps out of the probe [m], (point_count, 3).

@@ -232,6 +232,18 @@ class FEContactModel(ContactModel):
     def drop_caches(self) -> None:
         self.sim.integrator.drop_caches()
 
+    def _loaded(self) -> bool:
+        gravity = self.sim.config.gravity_m_s2
+        return gravity is not None and any(g != 0.0 for g in gravity)
+
+    def _advance_asleep(self, h: float, pieces: int) -> None:
+        # The simulator's clock runs on as the sub-motions' commits would run it.
+        sim = self.sim
+        time_s = sim.time_s
+        for _ in range(pieces):
+            time_s += h
+        sim.set_state(sim.positions, sim.velocities, time_s=time_s)
+
     def step_tangent(self) -> tuple[Factorization, NDArray[np.bool_]]:
         """A factorisation of the tissue's static tangent at the present state (the elastic
         stiffness K(x), contact left out, the fixed base eliminated) and the eliminated dofs,

@@ -248,6 +248,13 @@ class PenaltyContact(FEContactModel):
         diagnostics["augmentations"] = self.augmentations if augmented else 0
         return result.status, points, forces, diagnostics
 
+    def sleep_reach_m(self) -> float:
+        """The springs' reach [m]: the contact distance, and beyond it the farthest a
+        point's augmented force offset pushes (offset / k_s), as :meth:`PenaltyTerm.evaluate`
+        detects them."""
+        term = self.term
+        return term.distance + float(term.offsets.max(initial=0.0)) / term.stiffness
+
     def _augmented_step(self, dt: float) -> Any:
         """Solve a step of ``dt`` [s], re-solving from the same start with augmented offsets
         while a point is deeper than the tolerance (see the module docstring)."""

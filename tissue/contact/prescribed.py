@@ -167,6 +167,33 @@ class PrescribedContact(FEContactModel):
         self._last_position = None
         self._step_motion = None
 
+    def sleep_reach_m(self) -> float | None:
+        """The skin guard's reach [m] (its springs' force offsets over k_s; 0 without
+        them: online nodes join only once inside the probe), and for a node set taken at
+        first contact the capture distance. None for a given node set: it is taken at the
+        first step wherever the probe is, so that step must run."""
+        params = self.params
+        if params.node_set is not None:
+            return None
+        reach = 0.0
+        if self._guard is not None:
+            reach = float(self._guard.offsets.max(initial=0.0)) / self._guard.stiffness
+        if not params.online:
+            reach = max(reach, params.capture_distance_m)
+        return reach
+
+    def _in_contact(self) -> bool:
+        return bool(self._nodes.size)
+
+    def _advance_asleep(self, h: float, pieces: int) -> None:
+        # What a step with no node held records (see _advance).
+        super()._advance_asleep(h, pieces)
+        position = self.probe.position_world.copy()
+        before = self._last_position
+        self._step_motion = None if before is None else position - before
+        self._last_position = position
+        self._last_reaction = np.zeros((0, 3))
+
     def contact_points_world(self) -> NDArray[np.float64]:
         """The free boundary nodes [m], (k, 3): the points the method moves with the probe."""
         return self.sim.positions[self.boundary_nodes]

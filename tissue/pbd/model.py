@@ -356,6 +356,14 @@ class PBDContact(ContactModel):
         self._lam_dev[:] = snapshot["lam_dev"]
         self._lam_hyd[:] = snapshot["lam_hyd"]
 
+    def sleep_reach_m(self) -> float:
+        """The contact margin [m]: a substep projects the points closer than it."""
+        return self.config.contact_margin_m
+
+    def _advance_asleep(self, h: float, pieces: int) -> None:
+        # The next step's substeps move the probe from here (see _advance).
+        self._previous_pose = (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
+
     def _advance(
         self, step_s: float
     ) -> tuple[StepStatus, NDArray[np.float64], NDArray[np.float64], dict[str, Any]]:

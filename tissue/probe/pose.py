@@ -36,6 +36,26 @@ def _in_box(points, origin, rotation, bounds, margin, out):  # pragma: no cover 
         out[i] = inside
 
 
+@nb.njit(cache=True)
+def _any_in_box(points, origin, rotation, bounds, margin):  # pragma: no cover - compiled
+    """Whether any point [m] lies in the probe-frame box ``bounds`` widened by ``margin``
+    (:func:`_in_box`'s test, stopping at the first)."""
+    for i in range(points.shape[0]):
+        inside = True
+        for axis in range(3):
+            value = (
+                (points[i, 0] - origin[0]) * rotation[0, axis]
+                + (points[i, 1] - origin[1]) * rotation[1, axis]
+                + (points[i, 2] - origin[2]) * rotation[2, axis]
+            )
+            if value < bounds[0, axis] - margin or value > bounds[1, axis] + margin:
+                inside = False
+                break
+        if inside:
+            return True
+    return False
+
+
 def _identity_quat() -> NDArray[np.float64]:
     """The identity rotation (w, x, y, z) = (1, 0, 0, 0): a fresh array per probe."""
     return np.array([1.0, 0.0, 0.0, 0.0])
@@ -133,6 +153,42 @@ class Probe:
             return 0.0
         distance, _ = self.signed_distance_world(points_world[near])
         return float(max(0.0, -float(distance.min())))
+
+    def clearance_m(self, points_world: NDArray[np.float64], within_m: float) -> float:
+        """The smallest signed distance [m] from ``points_world`` [m] (n, 3) to the probe's
+        surface (negative: a point inside the probe), over the points within ``within_m``
+        [m] (>= 0) of the probe; ``inf`` when there is none (every point lies farther than
+        ``within_m`` from the probe).
+
+        A point outside the local bounding box widened by ``within_m`` (:meth:`near`) lies
+        farther than that from the box, and so from the probe inside it: the exact signed
+        distance is evaluated only for the points inside the widened box. So
+        ``clearance_m(points, d) > d`` says exactly that every point is farther than ``d``
+        from the probe, at the cost of one compiled pass over the points when none is near
+        (3-4 us for the 512 skin points of the 1,363-tet phantom, most of it the call).
+        """
+        points = np.ascontiguousarray(points_world, dtype=np.float64)
+        if not self.any_near(points, within_m):
+            return math.inf
+        near = self.near(points, within_m)
+        distance, _ = self.signed_distance_world(points[near])
+        return float(distance.min())
+
+    def any_near(self, points_world: NDArray[np.float64], margin_m: float = 0.0) -> bool:
+        """Whether any of ``points_world`` [m] (n, 3) lies within the local bounding box
+        widened by ``margin_m`` [m]: ``np.any(near(points_world, margin_m))``, stopping at
+        the first such point."""
+        if self._bounds is None:
+            self._bounds = self.shape.local_bounds_m()
+        return bool(
+            _any_in_box(
+                np.ascontiguousarray(points_world, dtype=np.float64),
+                self.position_world,
+                self._rotation,
+                self._bounds,
+                float(margin_m),
+            )
+        )
 
     def signed_distance_world(
         self, points_world: ArrayLike

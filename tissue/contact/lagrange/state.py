@@ -65,6 +65,18 @@ class LagrangeState(FEContactModel):
         self._last_step = None
         self._chords.reset()
 
+    def sleep_reach_m(self) -> float:
+        """The alarm distance [m]: points closer than it become constraints (at least the
+        contact distance, :class:`LagrangeParams` checks)."""
+        return max(self.params.alarm_distance_m, self.params.contact_distance_m)
+
+    def _in_contact(self) -> bool:
+        return bool(np.any(self._warm > 0.0))
+
+    def _advance_asleep(self, h: float, pieces: int) -> None:
+        super()._advance_asleep(h, pieces)
+        self._pose_before = (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
+
     def contact_constraints(self) -> ContactConstraints:
         """The contacts pressing at the end of the last step, exact (zero compliance)."""
         active = np.flatnonzero(self._warm > 0.0)
@@ -127,6 +139,7 @@ class LagrangeState(FEContactModel):
                 f"{self._warm.shape[0]}: it was saved from another mesh"
             )
         self._reset_tissue()  # caches of the state being left
+        self._state_replaced()
         self.sim.set_state(positions, velocities, time_s=tissue_time)
         self._time = model_time
         self._warm[:] = warm

@@ -1,0 +1,189 @@
+"""Sleep in free air: a tissue at rest, with the probe clear of the skin by more than it can
+reach in the next step, skips the step's work (:meth:`tissue.contact.base.ContactModel.step`
+says when and what a sleeping step returns). :class:`FreeAirSleep` is the part of
+:class:`~tissue.contact.base.ContactModel` that decides it; the hooks a contact method
+overrides to sleep are :meth:`FreeAirSleep.sleep_reach_m` (None: it never sleeps),
+:meth:`FreeAirSleep._in_contact`, :meth:`FreeAirSleep._loaded` and
+:meth:`FreeAirSleep._advance_asleep`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from tissue.errors import ConfigError
+
+if TYPE_CHECKING:
+    from tissue.contact.base import SurfacePoints
+    from tissue.probe import Probe
+
+#: How much farther than a method's own reach (:meth:`ContactModel.sleep_reach_m`) the skin
+#: must lie from the probe for a step to sleep [m] (see :meth:`ContactModel.step`). The
+#: reach and the probe's travel already bound where a step can act; this covers what they
+#: do not state (a solver's iterates straying past the positions it converges to, round-off
+#: in the signed distance). Waking 1 mm early costs at most a few tissue steps of an
+#: approach (5 at the paper's 10 mm/s); waking late would skip contact.
+SLEEP_SAFETY_MARGIN_M = 0.001
+
+#: The node speed [m/s] below which a tissue at rest in free air may sleep, the setting the
+#: environments use (``TissueSpec(sleep_speed_m_s=SLEEP_SPEED_M_S)``; see
+#: :meth:`ContactModel.step`). A node this slow moves 20 nm in a 0.02 s step, far below
+#: anything a lesion's position or a force could show; a tissue released from a press
+#: falls below it within about 40-150 steps (0.8-3 s) on the coarse phantom levels.
+SLEEP_SPEED_M_S = 1e-6
+
+
+def check_sleep_speed(value: object) -> float | None:
+    """``value`` as a sleep threshold [m/s]: None (never sleep) or a finite number > 0.
+
+    Raises:
+        ConfigError: anything else, naming the value and what to give instead.
+    """
+    if value is None:
+        return None
+    number = math.nan
+    if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
+        number = float(value)
+    if not (math.isfinite(number) and number > 0.0):
+        raise ConfigError(
+            f"sleep_speed_m_s must be None (the tissue never sleeps) or a node speed > 0 "
+            f"[m/s], e.g. tissue.SLEEP_SPEED_M_S = {SLEEP_SPEED_M_S}; got {value!r}"
+        )
+    return number
+
+
+class FreeAirSleep:
+    """Whether a step may sleep, and the state that decides it (a mixin of
+    :class:`~tissue.contact.base.ContactModel`, whose ``__init__`` sets the attributes)."""
+
+    if TYPE_CHECKING:
+        probe: Probe
+        skin: SurfacePoints
+        _volume_boundary: SurfacePoints
+        _sleep_speed_m_s: float | None
+        _quiet: bool
+        _rest: tuple[NDArray[np.float64], NDArray[np.float64], float] | None
+        _rest_known: bool
+        _state_version: int
+
+        @property
+        def node_positions(self) -> NDArray[np.float64]: ...
+        @property
+        def node_velocities(self) -> NDArray[np.float64]: ...
+        @property
+        def dt(self) -> float: ...
+        def contact_points_world(self) -> NDArray[np.float64]: ...
+        def _behind_skin(self, boundary_points: NDArray[np.float64]) -> bool: ...
+
+    @property
+    def sleep_speed_m_s(self) -> float | None:
+        """The node speed [m/s] below which a tissue at rest, with the probe clear of the
+        skin, sleeps instead of stepping (see :meth:`step`); None (the default): it never
+        sleeps.
+
+        Raises:
+            ConfigError: (setting it) anything but None or a finite number > 0.
+        """
+        return self._sleep_speed_m_s
+
+    @sleep_speed_m_s.setter
+    def sleep_speed_m_s(self, value: float | None) -> None:
+        self._sleep_speed_m_s = check_sleep_speed(value)
+        self._forget_rest()
+
+    def sleep_reach_m(self) -> float | None:
+        """How far from the probe [m] a point (of :meth:`contact_points_world` or the skin)
+        at rest can lie and still be acted on in this method's next step with the probe
+        held where it is: its alarm, capture or contact-margin distance. A step sleeps only
+        while every point lies farther than this plus the probe's travel and
+        :data:`SLEEP_SAFETY_MARGIN_M` (see :meth:`step`).
+
+        None (the default): this method never sleeps, so that a strategy registered
+        without stating its reach is never put to sleep wrongly."""
+        return None
+
+    def _in_contact(self) -> bool:
+        """Whether the method holds contact that its next step must act on though the last
+        step returned no contact point (held nodes, active constraints): such a tissue
+        never sleeps. False by default; the last step's contact points count already."""
+        return False
+
+    def _loaded(self) -> bool:
+        """Whether a load other than contact acts on the tissue (gravity), so that nodes
+        standing still need not be at rest: such a tissue never sleeps. False by default."""
+        return False
+
+    def _advance_asleep(self, h: float, pieces: int) -> None:  # noqa: B027 - most keep nothing
+        """A sleeping step's bookkeeping: what the method's :meth:`_advance` would record of
+        ``pieces`` sub-motions of ``h`` [s] each beyond the tissue's state (the probe's last
+        pose, a clock of its own), the probe now at its new pose. Nothing by default."""
+
+    def _state_replaced(self) -> None:
+        """The state was loaded from elsewhere (:meth:`load_state`): nothing is known of
+        its contact, so the next step runs in full before any sleeps."""
+        self._quiet = False
+        self._forget_rest()
+
+    @property
+    def state_version(self) -> int:
+        """A number that changes whenever the tissue's state may have changed (a step that
+        ran, a reset, a restore, a loaded state) and stays while it sleeps: what was read
+        off the nodes under one version (lesion centroids, say) holds while it stays."""
+        return self._state_version
+
+    def _forget_rest(self) -> None:
+        self._rest = None
+        self._rest_known = False
+        self._state_version += 1
+
+    def _rest_check(self) -> tuple[NDArray[np.float64], NDArray[np.float64], float] | None:
+        """While the tissue may sleep: the points that must stay clear of the probe (the
+        method's contact points, then the skin's) [m], (k, 3), the volume's boundary points
+        [m] (b, 3) and the distance [m] they must be clear by, beyond the probe's travel;
+        None while it may not (in contact, moving, or a method that never sleeps).
+        Worked out once after each step that runs: a sleeping step changes none of it."""
+        if not self._rest_known:
+            self._rest = self._rest_points()
+            self._rest_known = True
+        return self._rest
+
+    def _rest_points(self) -> tuple[NDArray[np.float64], NDArray[np.float64], float] | None:
+        speed = self._sleep_speed_m_s
+        if speed is None or not self._quiet:
+            return None
+        reach = self.sleep_reach_m()
+        if reach is None or self._in_contact() or self._loaded():
+            return None
+        velocities = self.node_velocities
+        if velocities.size and float(np.einsum("ij,ij->i", velocities, velocities).max()) >= (
+            speed * speed
+        ):
+            return None
+        positions = self.node_positions
+        points = self.contact_points_world()
+        skin = self.skin.positions(positions)
+        if not np.array_equal(points, skin):  # the same points where a method acts on the skin
+            points = np.concatenate([points, skin])
+        boundary = self._volume_boundary.positions(positions)
+        # A node at the threshold speed moves speed x dt within the step.
+        return points, boundary, reach + SLEEP_SAFETY_MARGIN_M + speed * self.dt
+
+    def _may_sleep(self, travel_m: float) -> bool:
+        """Whether a step whose probe moved ``travel_m`` [m] (:meth:`probe_travel_m`; 0
+        without a sweep) to its present pose sleeps (see :meth:`step`)."""
+        rest = self._rest_check()
+        if rest is None:
+            return False
+        points, boundary, reach = rest
+        # Every probe point stays within its travel of where it ends: a point clear of the
+        # probe at its end by travel + reach is clear by reach all along the way.
+        reach += travel_m
+        if not self.probe.clearance_m(points, reach) > reach:
+            return False
+        # The tunnelling check a step makes with no force (a probe inside the body, away
+        # from every skin point, reports it; a sleeping step would not).
+        return not self._behind_skin(boundary)
