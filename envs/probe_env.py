@@ -70,6 +70,10 @@ HOME_PROBE_M = (0.0, 0.0, 0.14)
 #: 2.7 N; lesions 2, 3, 5, 8 and 9 lie 7-15 mm under 45-degree skin, where frictionless
 #: tissue slides out sideways: 25 mm of press and 7-8 N moved them 5 mm at most).
 PHANTOM_TARGET_LESIONS = (1, 4, 6, 7, 10)
+#: The tissue sleeps in free air below this node speed [m/s] (see
+#: :mod:`tissue.contact.sleep`): a step with the probe clear of a resting breast costs no
+#: tissue work; the observation is the same as a full step's.
+TISSUE_SLEEP_SPEED_M_S: float | None = tissue.SLEEP_SPEED_M_S
 #: Limits of a wrench observation [N, N m] and a joint velocity [rad/s] (the spaces' bounds).
 WRENCH_LIMIT = 200.0
 JOINT_VELOCITY_LIMIT = 20.0
@@ -173,6 +177,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
             mesh=mesh,
             contact=contact,
             profile=profile,
+            sleep_speed_m_s=TISSUE_SLEEP_SPEED_M_S,
             young_pa=young_pa,
             poisson=poisson,
             lesion_stiffness_ratio=lesion_stiffness_ratio,

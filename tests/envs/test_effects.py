@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import envs  # noqa: F401 - registers the environments
+from envs import probe_env
 from envs.coupling import TissueCoupling
 from envs.effects import EFFECTS, SCENES, needed_effects
 from envs.errors import EnvConfigError
@@ -174,3 +175,41 @@ def test_nothing_is_sliced_or_drawn_unless_asked(monkeypatch: pytest.MonkeyPatch
     imaging.reset(seed=0)
     imaging.step(PRESS)
     assert sliced.calls >= 2  # the reset's observation and the step's
+
+
+def _sleep_run(
+    monkeypatch: pytest.MonkeyPatch, contact: str, sleep: bool
+) -> tuple[list[dict], int]:
+    """ForceScan from seed 0: lift 20 mm, sweep sideways in free air, come back down and
+    press, lift again; each observation, and the steps the tissue slept."""
+    monkeypatch.setattr(probe_env, "TISSUE_SLEEP_SPEED_M_S", 1e-6 if sleep else None)
+    env = gym.make("probegym/ForceScan-v0", mesh=623, contact=contact)
+    unwrapped = env.unwrapped
+    observations = [env.reset(seed=0)[0]]
+    moves = [(1, -0.8)] * 5 + [(0, 0.4)] * 10 + [(1, 0.8)] * 5 + [(1, 0.3)] * 15
+    moves += [(1, -0.8)] * 6 + [(1, 0.0)] * 10
+    asleep = 0
+    for axis, amount in moves:
+        action = np.zeros(6, dtype=np.float32)
+        action[axis] = amount
+        observations.append(env.step(action)[0])
+        asleep += bool(unwrapped.coupling.last_step.diagnostics.details.get("asleep"))
+    return observations, asleep
+
+
+@pytest.mark.parametrize("contact", ["lm", "penalty", "prescribed", "pbd"])
+def test_a_sleeping_tissue_observes_as_a_stepping_one(
+    monkeypatch: pytest.MonkeyPatch, contact: str
+) -> None:
+    """The tissue sleeps while the probe is in free air and wakes as it comes back: the
+    observations are those of a tissue that never sleeps, bit for bit (PBD: within 1e-9,
+    the round-off a full free-air step adds)."""
+    sleeping, asleep = _sleep_run(monkeypatch, contact, sleep=True)
+    stepping, never = _sleep_run(monkeypatch, contact, sleep=False)
+    assert never == 0 and asleep >= 15
+    tolerance = 1e-9 if contact == "pbd" else 0.0
+    for ours, theirs in zip(sleeping, stepping, strict=True):
+        for key in ours:
+            difference = np.abs(ours[key].astype(np.float64) - theirs[key])
+            assert float(difference.max()) <= tolerance, key
+    assert float(-stepping[35]["wrench"][1]) > 0.5  # the probe did press the breast
