@@ -183,9 +183,15 @@ def run_effects_benchmark(
     records: list[dict[str, Any]] = []
     started = time.strftime("%Y-%m-%dT%H:%M:%S")
     provenance = BenchRecord("probegym bench effects: what each effect costs", command)
+    import envs.errors
+
     for profile in profiles or DEFAULT_PROFILES:
         for contact in methods or DEFAULT_METHODS:
-            record = benchmark_effects(contact, profile, level or DEFAULT_LEVEL)
+            try:
+                record = benchmark_effects(contact, profile, level or DEFAULT_LEVEL)
+            except envs.errors.EnvConfigError as refused:  # the task's own limit
+                print(f"{contact} {profile}: skipped: {refused}")
+                continue
             records.append(record)
             _print(record)
             write_records(json_path, "effects", started, records, threads=threading_environment())

@@ -242,7 +242,7 @@ class FEContactModel(ContactModel):
         time_s = sim.time_s
         for _ in range(pieces):
             time_s += h
-        sim.set_state(sim.positions, sim.velocities, time_s=time_s)
+        sim.set_clock(time_s)
 
     def step_tangent(self) -> tuple[Factorization, NDArray[np.bool_]]:
         """A factorisation of the tissue's static tangent at the present state (the elastic

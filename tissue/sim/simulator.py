@@ -276,6 +276,11 @@ class TissueSimulator:
         if time_s is not None:
             self._time = float(time_s)
 
+    def set_clock(self, time_s: float) -> None:
+        """Set the clock to ``time_s`` [s], the state untouched (a sleeping step's time:
+        :mod:`tissue.contact.sleep`)."""
+        self._time = float(time_s)
+
     # ------------------------------------------------------------------ boundary conditions
 
     def prescribe(
