@@ -182,6 +182,9 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
             poisson=poisson,
             lesion_stiffness_ratio=lesion_stiffness_ratio,
         )
+        # The tasks locate their target lesion themselves, when a term needs it: no tissue
+        # step evaluates any lesion.
+        self.tissue.track_lesions(())
         #: What this environment simulates (:mod:`envs.effects`).
         self.scene = resolve_scene(scene, effects, image is not False, profile)
         deforms = self.scene.has("deformation")
@@ -296,6 +299,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         same topology, so the scene's drawn surface fits it)."""
         if model is self.tissue:
             return
+        model.track_lesions(())
         self.tissue = model
         self.coupling.tissue = model
         if self.imager is not None:

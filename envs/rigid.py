@@ -117,7 +117,7 @@ class RigidCoupling:
             wrench[:3] += force
             wrench[3:] += cross3(contact.pos - origin, force)
             deepest = max(deepest, -float(contact.dist))
-        centroids = self.tissue.lesion_centroids_m()
+        centroids = self.tissue.lesion_centroids_m(self.tissue.tracked_lesions)
         return tissue.TissueStep(
             status=tissue.StepStatus.OK,
             time_s=self._time,

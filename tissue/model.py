@@ -13,7 +13,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -83,7 +83,8 @@ class TissueStep:
         skin_penetration_m: how far the skin (collision-surface vertices) lies inside the
             probe's body [m], >= 0, measured the same way for every method.
         landmarks_world_m: tracked points [m], (landmark_count, 3).
-        lesion_centroids_world_m: deformed lesion centroids [m], (lesion_count, 3).
+        lesion_centroids_world_m: deformed lesion centroids [m], (lesion_count, 3), or of
+            the lesions :meth:`Tissue.track_lesions` chose, in its order.
         diagnostics: how the step was solved.
     """
 
@@ -180,6 +181,7 @@ class Tissue:
         # under: a sleeping step leaves the nodes where they are, so it reports these again
         # instead of summing the lesions' tets (~60 us at 1,363 tets).
         self._centroids: tuple[int, NDArray[np.float64]] | None = None
+        self._tracked: NDArray[np.int64] | None = None
 
     # ------------------------------------------------------------------ description
 
@@ -259,9 +261,43 @@ class Tissue:
         landmarks = self._resolved.mesh.landmarks
         return () if landmarks is None else landmarks.names
 
-    def lesion_centroids_m(self) -> NDArray[np.float64]:
-        """Deformed lesion centroids now [m], (lesion_count, 3)."""
-        return self._lesions.centroids(self._model.node_positions)
+    def lesion_centroids_m(self, lesions: Sequence[int] | None = None) -> NDArray[np.float64]:
+        """Deformed lesion centroids now [m]: every lesion's, (lesion_count, 3), or those of
+        ``lesions`` (indices into :attr:`lesions`), (len(lesions), 3), computing no other.
+
+        Raises:
+            TissueInputError: an index out of range.
+        """
+        which = None if lesions is None else self._lesion_indices(lesions)
+        return self._lesions.centroids(self._model.node_positions, which)
+
+    def track_lesions(self, lesions: Sequence[int] | None) -> None:
+        """Which lesions each :class:`TissueStep` locates (``lesion_centroids_world_m``'s
+        rows, in this order): indices into :attr:`lesions`; ``()`` none (no lesion is
+        evaluated in a step); None (the default) every lesion. A setting of this object,
+        not of its state: snapshots and pickles do not carry it.
+
+        Raises:
+            TissueInputError: an index out of range.
+        """
+        self._tracked = None if lesions is None else self._lesion_indices(lesions)
+        self._centroids = None
+
+    @property
+    def tracked_lesions(self) -> tuple[int, ...] | None:
+        """The lesions each step locates (:meth:`track_lesions`); None: every lesion."""
+        return None if self._tracked is None else tuple(int(i) for i in self._tracked)
+
+    def _lesion_indices(self, lesions: Sequence[int]) -> NDArray[np.int64]:
+        count = len(self._lesions.lesions)
+        indices = [int(i) for i in lesions]
+        bad = [i for i in indices if not 0 <= i < count]
+        if bad or any(isinstance(i, bool) for i in lesions):
+            raise TissueInputError(
+                f"lesion indices must be in 0..{count - 1} (indices into Tissue.lesions); "
+                f"got {list(lesions)!r}"
+            )
+        return np.array(indices, dtype=np.int64)
 
     def surface(self) -> SurfaceMesh:
         """The skin and the lesions' boundaries as they are now, with region labels."""
@@ -467,7 +503,7 @@ class Tissue:
         if diagnostics.get("asleep") and kept is not None and kept[0] == version:
             centroids = kept[1]  # the nodes have not moved since
         else:
-            centroids = self.lesion_centroids_m()
+            centroids = self._lesions.centroids(self._model.node_positions, self._tracked)
             self._centroids = (version, centroids)
         return TissueStep(
             status=result.status,

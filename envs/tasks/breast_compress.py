@@ -260,7 +260,7 @@ class BreastCompressEnv(ProbeEnv):
         start_depth = float(
             (
                 self._start_rot.T
-                @ (self.tissue.lesion_centroids_m()[self._target] - self._start_pos)
+                @ (self.tissue.lesion_centroids_m((self._target,))[0] - self._start_pos)
             )[1]
         )
         self._target_depth = start_depth - compression
@@ -310,7 +310,7 @@ class BreastCompressEnv(ProbeEnv):
         position, rotation = self.probe_pose()
         lesion = self.tissue.lesions[self._target]
         return lesion_in_image(
-            self.tissue.lesion_centroids_m()[self._target],
+            self.tissue.lesion_centroids_m((self._target,))[0],
             lesion.radius_m,
             position,
             rotation,

@@ -339,7 +339,7 @@ class LesionSearchEnv(ProbeEnv):
         position, rotation = self.probe_pose()
         lesion = self.tissue.lesions[self._target]
         return lesion_in_image(
-            self.tissue.lesion_centroids_m()[self._target],
+            self.tissue.lesion_centroids_m((self._target,))[0],
             lesion.radius_m,
             position,
             rotation,

@@ -213,3 +213,27 @@ def test_a_sleeping_tissue_observes_as_a_stepping_one(
             difference = np.abs(ours[key].astype(np.float64) - theirs[key])
             assert float(difference.max()) <= tolerance, key
     assert float(-stepping[35]["wrench"][1]) > 0.5  # the probe did press the breast
+
+
+@pytest.mark.parametrize(("env_id", "located"), [("ForceScan-v0", 0), ("LesionSearch-v0", 1)])
+def test_only_the_lesion_a_term_tracks_is_located(
+    monkeypatch: pytest.MonkeyPatch, env_id: str, located: int
+) -> None:
+    """ForceScan tracks no lesion: none is ever located; LesionSearch locates its target
+    only, once a step."""
+    from tissue import lesions as lesions_module
+
+    sizes: list[int] = []
+    original = lesions_module._volume_centroids
+
+    def counted(*args):  # type: ignore[no-untyped-def]
+        sizes.append(int(args[-1].size))
+        return original(*args)
+
+    monkeypatch.setattr(lesions_module, "_volume_centroids", counted)
+    env = gym.make(f"probegym/{env_id}", mesh=623)
+    env.reset(seed=0)
+    sizes.clear()
+    for _ in range(5):
+        env.step(PRESS)
+    assert sizes == [located] * (5 if located else 0)
