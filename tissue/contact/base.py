@@ -215,6 +215,7 @@ class ContactModel(FreeAirSleep, abc.ABC):
         self._volume_boundary = boundary_surface(mesh)
         self._tunnel_samples = face_samples(self.probe)
         self._sleep_speed_m_s: float | None = None
+        self._landmarks_kept: tuple[int, NDArray[np.float64]] | None = None
         # Whether the last step (or the reset) left the tissue out of contact with status
         # ok: only then may the next step sleep.
         self._quiet = True
@@ -337,7 +338,7 @@ class ContactModel(FreeAirSleep, abc.ABC):
             contact_points=np.zeros((0, 3)),
             contact_forces=np.zeros((0, 3)),
             penetration_max_m=0.0,
-            landmarks=self.landmark_positions(),
+            landmarks=self._resting_landmarks(),
             compute_ms=1e3 * (time.perf_counter() - start),
             diagnostics=diagnostics,
             skin_penetration_m=0.0,
@@ -507,6 +508,15 @@ class ContactModel(FreeAirSleep, abc.ABC):
         collision surface) inside the probe's body. Measured the same way for every method,
         whatever points the method itself acts on."""
         return self.probe.deepest_inside_m(self.skin.positions(self.node_positions))
+
+    def _resting_landmarks(self) -> NDArray[np.float64]:
+        """:meth:`landmark_positions` for a sleeping step: read once per state version
+        (the nodes do not move while the tissue sleeps), a copy each time."""
+        kept = self._landmarks_kept
+        if kept is None or kept[0] != self.state_version:
+            kept = (self.state_version, self.landmark_positions())
+            self._landmarks_kept = kept
+        return kept[1].copy()
 
     def landmark_positions(self) -> NDArray[np.float64]:
         """Current landmark positions [m], (landmark_count, 3)."""
