@@ -39,11 +39,7 @@ import time
 import numpy as np
 from numpy.typing import NDArray
 
-from tissue.contact.fe_model import (
-    constraint_rows,
-    detect_contacts,
-    transpose_product,
-)
+from tissue.contact.fe_model import constraint_rows, transpose_product
 from tissue.contact.lagrange.iterate import FreeStep, Iterate, NewtonRun
 from tissue.contact.lagrange.response import ContactResponses
 from tissue.contact.lagrange.state import _report
@@ -103,9 +99,7 @@ class RobustSteps(ContactResponses, ContactTangent):
         y, (energy, gradient, scale), handed, started_at_x = self._starting_point(
             potential, x, v, h, relax_s
         )
-        contacts = detect_contacts(
-            self.surface, y.reshape(-1, 3), self.probe, self.params.alarm_distance_m
-        )
+        contacts = self._detect_contacts(y.reshape(-1, 3))
         rows = constraint_rows(self.surface, contacts, y.size, constrained)
         # The forces of the start, one per contact: what the step reports if it gives up in
         # its first iteration (a retry-able exact tangent found indefinite at once).
@@ -504,9 +498,7 @@ class RobustSteps(ContactResponses, ContactTangent):
         residual and the penetration."""
         energy, gradient, scale = evaluated
         contacts = run.at.contacts
-        contacts_new = detect_contacts(
-            self.surface, y.reshape(-1, 3), self.probe, self.params.alarm_distance_m
-        )
+        contacts_new = self._detect_contacts(y.reshape(-1, 3))
         # Carry the forces over to the re-detected contacts (same surface points).
         carried = np.zeros(self.surface.count)
         if contacts.count:

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from tissue.contact.fe_model import constraint_rows, detect_contacts, transpose_product
+from tissue.contact.fe_model import constraint_rows, transpose_product
 from tissue.contact.lagrange.response import ContactResponses
 from tissue.contact.lagrange.state import _report
 from tissue.status import StepStatus
@@ -54,7 +54,7 @@ class PaperSteps(ContactResponses):
         quasi = integrator.config.quasi_static
         free_x = x + free_dv.reshape(-1, 3) if quasi else x + h * (v + free_dv.reshape(-1, 3))
         impulse_per_force = 1.0 if quasi else h
-        contacts = detect_contacts(self.surface, free_x, self.probe, self.params.alarm_distance_m)
+        contacts = self._detect_contacts(free_x)
         forces = np.zeros(0)
         dv = free_dv
         response: dict[str, Any] = {}

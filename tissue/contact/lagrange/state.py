@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tissue.contact.compliance import KeptCompliance
-from tissue.contact.fe_model import Contacts, FEContactModel
+from tissue.contact.fe_model import Contacts, FEContactModel, detect_contacts, movable_points
 from tissue.contact.lagrange.params import LagrangeParams
 from tissue.contact.wrench_stiffness import ContactConstraints
 from tissue.errors import TissueInputError
@@ -39,6 +39,9 @@ class LagrangeState(FEContactModel):
         super().__init__(*args, **kwargs)
         # Warm start: last forces by surface point.
         self._warm = np.zeros(self.surface.count)
+        # The surface points a free dof can move: the others (on the fixed base) are never
+        # constraints (their compliance is 0: see :func:`movable_points`).
+        self._movable = movable_points(self.surface, self.mesh.fixed_nodes)
         # The probe pose of the last step (a failed robust step is retried from it).
         self._pose_before: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
         self._compliance = KeptCompliance(self.surface)
@@ -188,6 +191,17 @@ class LagrangeState(FEContactModel):
         self._warm[:] = warm
 
     # ------------------------------------------------------------------ shared by the steps
+
+    def _detect_contacts(self, node_positions: NDArray[np.float64]) -> Contacts:
+        """The movable surface points within the alarm distance of the probe at
+        ``node_positions`` [m] (nodes, 3): the step's constraints."""
+        return detect_contacts(
+            self.surface,
+            node_positions,
+            self.probe,
+            self.params.alarm_distance_m,
+            self._movable,
+        )
 
     @property
     def gap_tolerance_m(self) -> float:
