@@ -43,9 +43,11 @@ PROBE_BODY = "probe"
 PROBE_SITE = "probe"
 FT_SITE = "ft_sensor"
 FORCE_SENSOR = "ft_force"
-#: The rigid breast's geom and mesh (:mod:`envs.rigid`), and the contact bit it shares with
-#: the probe's face only (MuJoCo's default, 1, is the arm's).
+#: The rigid breast's geom and mesh (:mod:`envs.rigid`).
 RIGID_BREAST_GEOM = "breast_rigid"
+#: The contact bit the probe's face shares with the table (the chest wall under the
+#: phantom's fixed base) and the rigid breast, and nothing else (MuJoCo's default, 1, is the
+#: arm's): a probe pressed past the breast's flank stops on the table, as on a chest wall.
 RIGID_CONTACT_BIT = 2
 TORQUE_SENSOR = "ft_torque"
 
@@ -134,7 +136,7 @@ def build_scene(
             f"the arm in {config.robot_path} has no site {config.flange_site!r}; its sites: "
             f"{[name[len(ROBOT_PREFIX) :] for name in names]} (give flange_site=NAME)"
         )
-    _add_probe(spec, flange, probe_shape, collides=rigid_breast is not None)
+    _add_probe(spec, flange, probe_shape)
     if surface is not None:
         _add_breast(spec, surface)
     if rigid_breast is not None:
@@ -205,8 +207,8 @@ def _add_stage(spec: mujoco.MjSpec) -> None:
         size=[0.45, 0.35, 0.375],
         pos=[-0.15, 0.0, -0.375],
         rgba=[0.85, 0.85, 0.82, 1.0],
-        contype=0,
-        conaffinity=0,
+        contype=RIGID_CONTACT_BIT,
+        conaffinity=RIGID_CONTACT_BIT,
     )
     for name, position, target in (
         ("overview", (0.42, -0.62, 0.48), (-0.12, 0.0, 0.12)),
@@ -228,14 +230,11 @@ def _look_at(position: tuple[float, ...], target: tuple[float, ...]) -> list[flo
 
 
 def _add_probe(
-    spec: mujoco.MjSpec,
-    flange: mujoco.MjsSite,
-    probe_shape: tissue.ProbeShape | None,
-    collides: bool = False,
+    spec: mujoco.MjSpec, flange: mujoco.MjsSite, probe_shape: tissue.ProbeShape | None
 ) -> None:
     """The probe on the flange: its frame is the tissue's probe frame, its +y along the
-    flange's z, its back (the housing's end) on the flange, the F/T site there. With
-    ``collides`` its face collides with the rigid breast (:data:`RIGID_CONTACT_BIT`)."""
+    flange's z, its back (the housing's end) on the flange, the F/T site there. Its face
+    collides with the table and the rigid breast (:data:`RIGID_CONTACT_BIT`)."""
     shape = probe_shape if probe_shape is not None else _default_probe()
     low, high = shape.local_bounds_m()
     length = float(high[0] - low[0])
@@ -262,7 +261,7 @@ def _add_probe(
         ("face", -FACE_PLATE_M, 0.0, face),
     ):
         middle, half_height = 0.5 * (y_from + y_to), 0.5 * (y_to - y_from)
-        bit = RIGID_CONTACT_BIT if collides and name == "face" else 0
+        bit = RIGID_CONTACT_BIT if name == "face" else 0
         probe.add_geom(
             name=f"probe_{name}",
             type=mujoco.mjtGeom.mjGEOM_BOX,

@@ -237,3 +237,20 @@ def test_only_the_lesion_a_term_tracks_is_located(
     for _ in range(5):
         env.step(PRESS)
     assert sizes == [located] * (5 if located else 0)
+
+
+def test_the_table_stops_the_probe_as_a_chest_wall() -> None:
+    """Pressed down beside the breast, the probe's face stops on the table (z = 0, the
+    phantom's fixed base) and the F/T sensor reads the table's push; the tissue feels
+    nothing there."""
+    from envs.rotations import pointing_down
+
+    env = gym.make("probegym/ForceScan-v0", mesh=623, hard_force_n=100.0)
+    unwrapped = env.unwrapped
+    env.reset(seed=0)
+    unwrapped.place_probe(np.array([0.0, -0.11, 0.03]), pointing_down())  # beside the breast
+    for _ in range(40):  # the target 100 mm down, 3,000 N/m behind it
+        observation, _, _, _, info = env.step(np.array([0, 1, 0, 0, 0, 0], dtype=np.float32))
+    position, _ = unwrapped.probe_pose()
+    assert -0.001 < position[2] < 0.001
+    assert -observation["wrench"][1] > 5.0 and info["normal_force_n"] == 0.0
