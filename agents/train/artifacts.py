@@ -132,6 +132,29 @@ class TrainedPolicy:
         interface."""
 
 
+def normalization_of(folder: Path, model_path: Path, config: dict[str, Any]) -> Path | None:
+    """The normalisation statistics saved with ``model_path`` (the final model's, a
+    checkpoint's or the best model's), None for a run trained without normalisation.
+
+    Raises:
+        TrainedPolicyError: the run normalised observations but the file is missing.
+    """
+    if not config.get("normalize"):
+        return None
+    stats = folder / NORMALIZE_FILE
+    steps = checkpoint_steps(model_path)
+    if steps is not None:
+        stats = checkpoint_normalization(folder, steps)
+    elif model_path.parent.name == "eval":
+        stats = model_path.parent / BEST_NORMALIZE_FILE
+    if not stats.is_file():
+        raise TrainedPolicyError(
+            f"{folder} was trained with observation normalisation but {stats.name} is "
+            "missing: the model cannot see observations as it learnt them"
+        )
+    return stats
+
+
 def load_policy(path: str | Path, deterministic: bool = True) -> TrainedPolicy:
     """Load a trained policy from a ``probegym train`` folder or a model ``.zip`` in one."""
     folder, model_path = training_folder(path)
@@ -146,18 +169,8 @@ def load_policy(path: str | Path, deterministic: bool = True) -> TrainedPolicy:
         )
     model = algorithms[algo].load(model_path, device="cpu")
     normalizer = None
-    if config.get("normalize"):
-        stats = folder / NORMALIZE_FILE
-        steps = checkpoint_steps(model_path)
-        if steps is not None:
-            stats = checkpoint_normalization(folder, steps)
-        elif model_path.parent.name == "eval":
-            stats = model_path.parent / BEST_NORMALIZE_FILE
-        if not stats.is_file():
-            raise TrainedPolicyError(
-                f"{folder} was trained with observation normalisation but {stats.name} is "
-                "missing: the model cannot see observations as it learnt them"
-            )
+    stats = normalization_of(folder, model_path, config)
+    if stats is not None:
         import pickle
 
         with stats.open("rb") as handle:

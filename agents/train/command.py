@@ -53,6 +53,14 @@ def add_train_parser(commands: Any) -> None:
         + "'{\"start_offset_range_m\": [0.0, 0.01]}'",
     )
     parser.add_argument(
+        "--init-from",
+        type=Path,
+        default=None,
+        metavar="RUN",
+        help="start from a trained model (a train folder or a .zip in one): a curriculum's "
+        "next stage",
+    )
+    parser.add_argument(
         "--ray",
         default=None,
         metavar="ADDRESS",
@@ -125,6 +133,7 @@ def _settings(
         eval_episodes=args.eval_episodes,
         checkpoint_every=args.checkpoint_every,
         normalize=not args.no_normalize,
+        init_from=args.init_from,
         progress=not args.no_progress and args.ray is None,
     )
 

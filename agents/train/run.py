@@ -39,6 +39,9 @@ from agents.train.artifacts import (
     NORMALIZE_FILE,
     checkpoint_normalization,
     latest_checkpoint,
+    normalization_of,
+    read_config,
+    training_folder,
 )
 from tissue.errors import ConfigError
 
@@ -99,6 +102,10 @@ class TrainSettings:
             report raw returns.
         hyperparameters: the algorithm's (merged over :data:`DEFAULT_HYPERPARAMETERS`).
         progress: show a progress bar.
+        init_from: start from a trained model instead of a new one (a ``probegym train``
+            folder or a model ``.zip`` in one, with its normalisation statistics): the
+            next stage of a curriculum. Same env id, algorithm and normalisation; its own
+            hyper-parameters are kept.
     """
 
     env_id: str
@@ -114,6 +121,7 @@ class TrainSettings:
     normalize: bool = True
     hyperparameters: dict[str, Any] = field(default_factory=dict)
     progress: bool = True
+    init_from: Path | None = None
 
     def __post_init__(self) -> None:
         import envs
@@ -145,7 +153,7 @@ class TrainSettings:
 
     def identity(self) -> dict[str, Any]:
         """What a resumed run must share with the folder's (the step budget may grow)."""
-        return {
+        identity = {
             "env_id": self.env_id,
             "algo": self.algo,
             "env_kwargs": _plain(self.env_kwargs),
@@ -154,6 +162,9 @@ class TrainSettings:
             "normalize": self.normalize,
             "hyperparameters": _plain(self.resolved_hyperparameters()),
         }
+        if self.init_from is not None:
+            identity["init_from"] = str(self.init_from)
+        return identity
 
 
 def train(settings: TrainSettings, command: str | None = None, log: Any = print) -> Path:
@@ -205,10 +216,14 @@ def train(settings: TrainSettings, command: str | None = None, log: Any = print)
         vec_env_cls=vec_cls,
         vec_env_kwargs=vec_kwargs,
     )
+    start = None if resume is not None else _starting_model(settings)
     if settings.normalize:
         keys = [k for k in venv.observation_space.spaces if k != "image"]  # type: ignore[attr-defined]
         if resume is not None:
             venv = VecNormalize.load(str(checkpoint_normalization(out, resume[1])), venv)
+        elif start is not None and start[1] is not None:
+            venv = VecNormalize.load(str(start[1]), venv)  # the statistics learn on
+            venv.training = True
         else:
             # Rewards too for PPO (on-policy); SAC's replay buffer would keep stale scales.
             on_policy = settings.algo == "ppo"
@@ -221,6 +236,10 @@ def train(settings: TrainSettings, command: str | None = None, log: Any = print)
     if resume is not None:
         log(f"resuming {out} from its checkpoint at {resume[1]:,} steps")
         model = algorithm.load(resume[0], env=venv, device="cpu", tensorboard_log=str(out / "tb"))
+    elif start is not None:
+        log(f"starting from {start[0]}")
+        model = algorithm.load(start[0], env=venv, device="cpu", tensorboard_log=str(out / "tb"))
+        model.set_random_seed(settings.seed)
     else:
         model = algorithm(
             "MultiInputPolicy",
@@ -280,6 +299,27 @@ def train(settings: TrainSettings, command: str | None = None, log: Any = print)
         f"{time.perf_counter() - started:.0f} s: {final}"
     )
     return final
+
+
+def _starting_model(settings: TrainSettings) -> tuple[Path, Path | None] | None:
+    """``init_from``'s model and normalisation statistics (None without ``init_from``).
+
+    Raises:
+        TrainError: it names another environment, algorithm or normalisation.
+    """
+    if settings.init_from is None:
+        return None
+    folder, model_path = training_folder(settings.init_from)
+    config = read_config(folder)
+    theirs = (config.get("env_id"), config.get("algo"), bool(config.get("normalize")))
+    ours = (settings.env_id, settings.algo, settings.normalize)
+    if theirs != ours:
+        raise TrainError(
+            f"--init-from {settings.init_from}: that run trained {theirs[0]} with {theirs[1]} "
+            f"(normalised: {theirs[2]}); this one is {ours[0]} with {ours[1]} (normalised: "
+            f"{ours[2]}): start from a run of the same env, algorithm and normalisation"
+        )
+    return model_path, normalization_of(folder, model_path, config)
 
 
 def _best_normalization_saver(out: Path) -> Any:

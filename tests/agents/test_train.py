@@ -118,6 +118,21 @@ def test_train_saves_everything_loads_back_and_resumes(tmp_path: Path) -> None:
     assert (out / "checkpoints" / "model_4096_steps.zip").is_file()
     # Other settings in the same folder are refused.
     assert _train(out, "--steps", "6144", "--contact", "penalty") == 2
+    # A curriculum's next stage starts from this model and its statistics, in new settings.
+    import pickle
+
+    stage = tmp_path / "stage2"
+    kwargs = '{"hold_steps": 10}'
+    assert _train(stage, "--steps", "2048", "--env-kwargs", kwargs, "--init-from", str(out)) == 0
+    config = json.loads((stage / "config.json").read_text())
+    assert config["identity"]["init_from"] == str(out)
+    assert config["env_kwargs"]["hold_steps"] == 10
+    with (out / "vecnormalize.pkl").open("rb") as handle:
+        before = pickle.load(handle).obs_rms["wrench"].count
+    with (stage / "vecnormalize.pkl").open("rb") as handle:
+        after = pickle.load(handle).obs_rms["wrench"].count
+    assert after > before > 0  # the statistics learnt on from the first stage's
+    assert _train(tmp_path / "other", "--algo", "sac", "--init-from", str(out)) == 2
 
 
 @pytest.mark.train
