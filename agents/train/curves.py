@@ -47,7 +47,7 @@ def plot_curves(curves: list[dict[str, Any]], path: Path, title: str) -> Path:
 
     figure, (success_axis, return_axis) = plt.subplots(1, 2, figsize=(10, 3.8))
     for curve in curves:
-        label = f"{curve['algo']} seed {curve['seed']}"
+        label = str(curve["run"])  # the run's folder name
         steps = np.array(curve["steps"]) / 1e3
         if curve["success_rate"] is not None:
             success_axis.plot(steps, curve["success_rate"], marker="o", ms=3, label=label)
