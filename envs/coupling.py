@@ -101,6 +101,8 @@ class TissueCoupling:
         # (contact points, probe position [m], steps since) when K was last computed.
         self._stiffness_from: tuple[int, NDArray[np.float64], int] | None = None
         self.last_step: tissue.TissueStep | None = None
+        # No wrench and no stiffness since the last tissue step (free air): nothing to apply.
+        self._idle = True
         #: Wall time of the last step's parts [s]: substeps (controller included), the
         #: tissue's step, its wrench stiffness.
         self.timing: dict[str, float] = {"substeps_s": 0.0, "tissue_s": 0.0, "stiffness_s": 0.0}
@@ -123,6 +125,7 @@ class TissueCoupling:
         self._w0[:] = 0.0
         self._stiffness[:] = 0.0
         self._stiffness_from = None
+        self._idle = True
         self._q0_pos, self._q0_rot = position, rotation
         self.data.xfrc_applied[self.names.probe_body] = 0.0
         self.last_step = None
@@ -147,7 +150,8 @@ class TissueCoupling:
         """Apply the tissue's (linearised) wrench for the substep about to be taken
         (positions computed)."""
         body = self.names.probe_body
-        if not self.reaction:
+        if not self.reaction or self._idle:
+            # Nothing to apply (one-way coupling, or no force and no stiffness: free air).
             self.data.xfrc_applied[body] = 0.0
             return
         wrench = self.wrench_now()
@@ -212,6 +216,7 @@ class TissueCoupling:
             elif self._stiffness_from is not None:
                 count, where, age = self._stiffness_from
                 self._stiffness_from = (count, where, age + 1)
+        self._idle = not (np.any(self._w0) or np.any(self._stiffness))
         self.timing["tissue_s"] = stepped - started
         self.timing["stiffness_s"] = time.perf_counter() - stepped
         self.last_step = step
