@@ -111,11 +111,7 @@ class TissueCoupling:
 
     def probe_pose(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The probe site's pose now: position [m] (3,), rotation matrix (3, 3), world."""
-        site = self.names.probe_site
-        return (
-            self.data.site_xpos[site].copy(),
-            self.data.site_xmat[site].reshape(3, 3).copy(),
-        )
+        return probe_site_pose(self.data, self.names)
 
     def reset(self) -> None:
         """The tissue back at rest with the probe placed where the arm holds it now
@@ -221,6 +217,15 @@ class TissueCoupling:
         self.timing["stiffness_s"] = time.perf_counter() - stepped
         self.last_step = step
         return step
+
+
+def probe_site_pose(
+    data: mujoco.MjData, names: SceneNames
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The probe site's pose in ``data``: position [m] (3,), rotation matrix (3, 3), world
+    (copies)."""
+    site = names.probe_site
+    return data.site_xpos[site].copy(), data.site_xmat[site].reshape(3, 3).copy()
 
 
 def _quat(rotation: NDArray[np.float64]) -> NDArray[np.float64]:

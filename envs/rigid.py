@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 import tissue
 from envs.controller import cross3
+from envs.coupling import probe_site_pose
 from envs.scene import RIGID_BREAST_GEOM, SceneNames
 
 
@@ -66,11 +67,7 @@ class RigidCoupling:
 
     def probe_pose(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The probe site's pose now: position [m] (3,), rotation matrix (3, 3), world."""
-        site = self.names.probe_site
-        return (
-            self.data.site_xpos[site].copy(),
-            self.data.site_xmat[site].reshape(3, 3).copy(),
-        )
+        return probe_site_pose(self.data, self.names)
 
     def reset(self) -> None:
         """Time back to 0; nothing else holds state (the breast is rigid)."""

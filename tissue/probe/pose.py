@@ -19,21 +19,25 @@ from tissue.probe.rotation import _normalised_quat, matrix_to_quat, quat_to_matr
 from tissue.probe.shape import ProbeShape, _as_points
 
 
+@nb.njit(cache=True, inline="always")
+def _point_in_box(points, i, origin, rotation, bounds, margin):  # pragma: no cover - compiled
+    """Whether point i [m] lies in the probe-frame box ``bounds`` widened by ``margin``."""
+    for axis in range(3):
+        value = (
+            (points[i, 0] - origin[0]) * rotation[0, axis]
+            + (points[i, 1] - origin[1]) * rotation[1, axis]
+            + (points[i, 2] - origin[2]) * rotation[2, axis]
+        )
+        if value < bounds[0, axis] - margin or value > bounds[1, axis] + margin:
+            return False
+    return True
+
+
 @nb.njit(cache=True)
 def _in_box(points, origin, rotation, bounds, margin, out):  # pragma: no cover - compiled
     """out[i]: point i [m] lies in the probe-frame box ``bounds`` widened by ``margin``."""
     for i in range(points.shape[0]):
-        inside = True
-        for axis in range(3):
-            value = (
-                (points[i, 0] - origin[0]) * rotation[0, axis]
-                + (points[i, 1] - origin[1]) * rotation[1, axis]
-                + (points[i, 2] - origin[2]) * rotation[2, axis]
-            )
-            if value < bounds[0, axis] - margin or value > bounds[1, axis] + margin:
-                inside = False
-                break
-        out[i] = inside
+        out[i] = _point_in_box(points, i, origin, rotation, bounds, margin)
 
 
 @nb.njit(cache=True)
@@ -41,17 +45,7 @@ def _any_in_box(points, origin, rotation, bounds, margin):  # pragma: no cover -
     """Whether any point [m] lies in the probe-frame box ``bounds`` widened by ``margin``
     (:func:`_in_box`'s test, stopping at the first)."""
     for i in range(points.shape[0]):
-        inside = True
-        for axis in range(3):
-            value = (
-                (points[i, 0] - origin[0]) * rotation[0, axis]
-                + (points[i, 1] - origin[1]) * rotation[1, axis]
-                + (points[i, 2] - origin[2]) * rotation[2, axis]
-            )
-            if value < bounds[0, axis] - margin or value > bounds[1, axis] + margin:
-                inside = False
-                break
-        if inside:
+        if _point_in_box(points, i, origin, rotation, bounds, margin):
             return True
     return False
 
