@@ -16,6 +16,7 @@ from pathlib import Path
 from agents.env_listing import add_envs_parser, run_envs
 from agents.evaluation import add_evaluate_parser, run_evaluate
 from agents.train.command import add_train_parser, seed_list
+from agents.view import add_view_parser, run_view
 from tissue.errors import ConfigError, TissueInputError
 from tissue.profile import Profile
 
@@ -249,6 +250,7 @@ def _build_parser() -> argparse.ArgumentParser:
     add_train_parser(commands)
     add_evaluate_parser(commands)
     add_envs_parser(commands)
+    add_view_parser(commands)
     return parser
 
 
@@ -403,6 +405,8 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         return run_evaluate(args)
     if args.command == "envs":
         return run_envs(args)
+    if args.command == "view":
+        return run_view(args)
     if args.command == "train":
         from agents.train.command import run_train
 
