@@ -134,7 +134,13 @@ def test_the_web_viewer_listens_on_loopback_only() -> None:
     before = set(_loopback_only("self"))
     served = launch_web([], port=0)
     try:
+        # The socket is bound (to loopback, checked) when launch_web returns; the viewer's
+        # thread puts it in the listening state moments later: wait for that, up to 20 s.
+        deadline = time.monotonic() + 20.0
         now = set(listening_sockets())
+        while (LOOPBACK, served.port) not in now and time.monotonic() < deadline:
+            time.sleep(0.1)
+            now = set(listening_sockets())
         # In this process: the viewer's port (a socket an earlier test's viewer left to the
         # garbage collector may hold the same loopback port already) and nothing new
         # beyond loopback.
@@ -188,7 +194,9 @@ class _Server:
         if self.process.poll() is None:
             self.process.send_signal(signal.SIGINT)
             try:
-                self.process.wait(timeout=60)
+                # Ctrl-C is handled once the scene being built is (on a fresh install the
+                # first build compiles the tissue's kernels: minutes on a loaded machine).
+                self.process.wait(timeout=240)
             except subprocess.TimeoutExpired:
                 self.process.kill()
                 self.process.wait()
