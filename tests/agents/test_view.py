@@ -204,7 +204,23 @@ class _Server:
         return int(self.process.returncode)
 
 
+def _compile_the_default_scene() -> None:
+    """Build and step, in this process, what ``probegym view`` builds first (BreastCompress
+    with the image, 623 tets), so that the subprocess loads the compiled kernels from the
+    on-disk cache: a first compilation holds the process for minutes on a loaded machine,
+    and Ctrl-C is handled only after it."""
+    import gymnasium as gym
+
+    import envs  # noqa: F401 - registers the ids
+
+    env = gym.make("probegym/BreastCompress-v0", mesh=623, image=True)
+    env.reset(seed=0)
+    env.step(np.zeros(6, dtype=np.float32))
+    env.close()
+
+
 def test_view_prints_the_loopback_address_it_bound_and_stops_on_ctrl_c() -> None:
+    _compile_the_default_scene()
     server = _Server("--mesh", "623", "--port", "0")
     try:
         found = server.wait_for(r"serving (http://127\.0\.0\.1:(\d+)/)", timeout_s=180)
