@@ -24,8 +24,10 @@ import contextlib
 import ipaddress
 import os
 import queue
+import signal
 import socket
 import sys
+import threading
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -249,9 +251,27 @@ def launch_native(plugins: Iterable[plugin.Plugin], *, title: str = "probegym") 
 
 
 def run_until_closed(handle: viewer_handle.ViewerHandle) -> None:
-    """Run the simulation's loop (its plugins step and pace) until the viewer closes."""
-    while handle.is_running():
-        handle.sync()
+    """Run the simulation's loop (its plugins step and pace) until the viewer closes.
+
+    Raises:
+        KeyboardInterrupt: on Ctrl-C (SIGINT), after the step in progress. Studio calls the
+            plugins' handlers from C++ and does not pass their exceptions on, so an
+            interrupt raised inside one (where a tissue step spends most of the loop's
+            time) would be lost: in the main thread the signal only sets a flag, which
+            the loop reads between syncs.
+    """
+    interrupted = threading.Event()
+    previous = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.signal(signal.SIGINT, lambda *_: interrupted.set())
+    try:
+        while handle.is_running() and not interrupted.is_set():
+            handle.sync()
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+    if interrupted.is_set():
+        raise KeyboardInterrupt
 
 
 def listening_sockets(pid: int | str = "self") -> list[tuple[str, int]]:
