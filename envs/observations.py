@@ -13,11 +13,13 @@ Defaults are the paper's Telemed L12-5N40 linear probe: about 40 mm aperture, 50
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import mujoco
 import numpy as np
 from numpy.typing import NDArray
 
+import tissue
 from envs.controller import cross3
 from envs.errors import EnvConfigError
 from envs.scene import SceneNames
@@ -119,3 +121,14 @@ def sensed_wrench(
     torque = torque_about_site + cross3(site_pos - origin, force)
     probe_rot = data.site_xmat[names.probe_site].reshape(3, 3)
     return np.concatenate([probe_rot.T @ force, probe_rot.T @ torque])
+
+
+def tissue_step_info(step: tissue.TissueStep) -> dict[str, Any]:
+    """What ``info["tissue"]`` says of a tissue step: its status, Newton iterations,
+    sub-motions and the skin's penetration into the probe [m]."""
+    return {
+        "status": step.status.value,
+        "iterations": step.diagnostics.iterations,
+        "sub_motions": step.diagnostics.sub_motions,
+        "skin_penetration_m": float(step.skin_penetration_m),
+    }

@@ -52,7 +52,7 @@ from envs.effects import Scene, check_terms, resolve_scene
 from envs.errors import EnvConfigError, check_positive
 from envs.observations import TOUCH_FORCE_N, ImagingConfig, sensed_wrench
 from envs.randomization import DomainRandomization, Randomizer
-from envs.rendering import CAMERAS, SceneRenderer
+from envs.rendering import CAMERAS, SceneRenderer, beside
 from envs.rigid import RigidCoupling
 from envs.rotations import axis_angle, pointing_down, quat_matrix, rotation_angle, turn_matrix
 from envs.scene import SceneConfig, build_scene, scene_names
@@ -455,17 +455,6 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         """After a non-finite arm state (the episode ends), leave the arm at the start pose."""
         self.place_probe(self._start_pos, self._start_rot)
 
-    @staticmethod
-    def _tissue_info(step: tissue.TissueStep) -> dict[str, Any]:
-        """What ``info["tissue"]`` says of a tissue step: its status, Newton iterations,
-        sub-motions and the skin's penetration into the probe [m]."""
-        return {
-            "status": step.status.value,
-            "iterations": step.diagnostics.iterations,
-            "sub_motions": step.diagnostics.sub_motions,
-            "skin_penetration_m": float(step.skin_penetration_m),
-        }
-
     # ------------------------------------------------------------------ stepping
 
     def _check_action(self, action: Any) -> NDArray[np.float64]:
@@ -552,14 +541,8 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         assert self.imager is not None
         quat = np.empty(4)
         mujoco.mju_mat2Quat(quat, self.data.site_xmat[self.names.probe_site])
-        image = self._ultrasound(quat)
         config = self.imager.config
-        height = frame.shape[0]
-        width = max(1, round(height * config.aperture_m / config.imaging_depth_m))
-        rows = np.minimum((np.arange(height) * image.shape[0]) // height, image.shape[0] - 1)
-        cols = np.minimum((np.arange(width) * image.shape[1]) // width, image.shape[1] - 1)
-        scaled = image[np.ix_(rows, cols)]
-        return np.concatenate([frame, np.repeat(scaled[:, :, None], 3, axis=2)], axis=1)
+        return beside(frame, self._ultrasound(quat), config.aperture_m / config.imaging_depth_m)
 
     def sensed_wrench(self) -> NDArray[np.float64]:
         """The F/T sensor's wrench in the probe frame (see

@@ -88,3 +88,15 @@ class SceneRenderer:
         if self._viewer is not None:
             self._viewer.close()
             self._viewer = None
+
+
+def beside(frame: NDArray[np.uint8], image: NDArray[np.uint8], aspect: float) -> NDArray[np.uint8]:
+    """``frame`` (h, w, 3) with the grey ``image`` (rows, cols) to its right, scaled
+    (nearest) to the frame's height at ``aspect`` (width / height: aperture over imaging
+    depth), as RGB."""
+    height = frame.shape[0]
+    width = max(1, round(height * aspect))
+    rows = np.minimum((np.arange(height) * image.shape[0]) // height, image.shape[0] - 1)
+    cols = np.minimum((np.arange(width) * image.shape[1]) // width, image.shape[1] - 1)
+    scaled = image[np.ix_(rows, cols)]
+    return np.concatenate([frame, np.repeat(scaled[:, :, None], 3, axis=2)], axis=1)

@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 import tissue
 from envs.errors import EnvConfigError, check_failure_reward
-from envs.observations import LesionInImage, lesion_in_image
+from envs.observations import LesionInImage, lesion_in_image, tissue_step_info
 from envs.probe_env import ProbeEnv
 from envs.rotations import quat_matrix, turn_matrix
 
@@ -374,6 +374,6 @@ class BreastCompressEnv(ProbeEnv):
             "held_steps": int(self._held),
         }
         if step is not None:
-            info["tissue"] = self._tissue_info(step)
+            info["tissue"] = tissue_step_info(step)
         info.update(failure or {})
         return info

@@ -20,6 +20,7 @@ from envs.errors import (
     finite_number,
     number_pair,
 )
+from envs.observations import tissue_step_info
 from envs.probe_env import ProbeEnv
 from envs.rotations import quat_matrix
 
@@ -502,6 +503,6 @@ class ForceScanEnv(ProbeEnv):
             "skin_penetration_m": 0.0 if step is None else float(step.skin_penetration_m),
         }
         if step is not None:
-            info["tissue"] = self._tissue_info(step)
+            info["tissue"] = tissue_step_info(step)
         info.update(failure or {})
         return info

@@ -20,7 +20,7 @@ from envs.errors import (
     finite_number,
     number_pair,
 )
-from envs.observations import LesionInImage, lesion_in_image
+from envs.observations import LesionInImage, lesion_in_image, tissue_step_info
 from envs.probe_env import ProbeEnv
 from envs.rotations import quat_matrix, turn_matrix
 
@@ -402,6 +402,6 @@ class LesionSearchEnv(ProbeEnv):
             "held_steps": int(self._held),
         }
         if step is not None:
-            info["tissue"] = self._tissue_info(step)
+            info["tissue"] = tissue_step_info(step)
         info.update(failure or {})
         return info
