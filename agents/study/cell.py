@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 import platform
@@ -15,7 +16,10 @@ import numpy as np
 from agents.compress import build_model, run_compression
 from agents.study.scenes import StudyScene, open_scene
 from agents.study.spec import Cell, StudySpec
+from tissue import TissueSpec, make_tissue
+from tissue.contact.base import ContactModel
 from tissue.contact.stability import StabilityLimits, StabilityMonitor
+from tissue.mesh import TetMesh
 from tissue.pbd import PBDConfig
 from tissue.probe import parse_probe_spec
 from tissue.profile import profile_choices
@@ -35,34 +39,37 @@ def scene_for(name: str) -> StudyScene:
     return _SCENES[name]
 
 
-def run_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
+def run_cell(spec: StudySpec, cell: Cell, tissue_spec: TissueSpec | None = None) -> dict[str, Any]:
     """Run one experiment; returns its ``results.jsonl`` record (errors are added later).
 
     The record holds the cell, the mesh size, the tracked point of the cell's lesion at rest
     and after settling at each depth reached [m], the normal force [N] and penetration [m]
     there, a summary of the per-step compute times [ms], the stability percentage and the
     instability met (None when the experiment completed).
+
+    ``tissue_spec``: run the cell's protocol on that tissue instead of the study's own
+    configuration (the kinematic twin of an environment's tissue, for ``--robot``); its
+    mesh must be the cell's level and it is stepped without sleeping. The record's
+    ``tissue`` says which: ``"study"`` or ``"environment"``.
     """
     started = time.perf_counter()
     scene = scene_for(spec.scene)
     mesh = scene.mesh(cell.level)
-    shape = parse_probe_spec("face")
-    prescribed = cell.method == "prescribed"
-    online = prescribed and profile_choices(cell.config).online_prescribed
-    node_set = scene.prescribed_nodes(mesh, cell.lesion) if prescribed and not online else None
-    # The study's own configurations, fixed (its published results were computed with them):
-    # robust prescribed online and sticking, PBD with the constants calibrated at 4,126 tets.
-    model = build_model(
-        mesh,
-        shape,
-        cell.method,
-        cell.config.value,
-        None,
-        None,
-        online if prescribed else None,
-        node_set,
-        pbd_config=PBDConfig.for_profile(cell.config.value),
-    )
+    if tissue_spec is None:
+        model, shape = _study_model(scene, mesh, cell)
+    else:
+        tissue = make_tissue(dataclasses.replace(tissue_spec, sleep_speed_m_s=None))
+        if not np.array_equal(tissue.rest_nodes_m, mesh.nodes):
+            raise ValueError(
+                f"the tissue spec's mesh ({tissue_spec.mesh!r}) is not the study's level "
+                f"{cell.level} mesh of scene {scene.name}"
+            )
+        if (tissue.spec.contact, tissue.spec.profile) != (cell.method, cell.config.value):
+            raise ValueError(
+                f"the tissue spec's contact and profile ({tissue.spec.contact}, "
+                f"{tissue.spec.profile}) are not cell {cell.key}'s"
+            )
+        model, shape = tissue.contact_model, tissue.probe_shape
     start, stops = scene.path(mesh, shape, cell.lesion, spec.depths_m)
     monitor = StabilityMonitor(cell.method, mesh.nodes, start.position, STUDY_LIMITS)
     run = run_compression(
@@ -75,6 +82,7 @@ def run_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
     return {
         "key": cell.key,
         "scene": scene.name,
+        "tissue": "study" if tissue_spec is None else "environment",
         "config": cell.config.value,
         "method": cell.method,
         "level": cell.level,
@@ -99,6 +107,28 @@ def run_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
         "pid": os.getpid(),
         "revision": source_revision(),
     }
+
+
+def _study_model(scene: StudyScene, mesh: TetMesh, cell: Cell) -> tuple[ContactModel, Any]:
+    """The study's own contact model for ``cell`` and its probe's shape."""
+    shape = parse_probe_spec("face")
+    prescribed = cell.method == "prescribed"
+    online = prescribed and profile_choices(cell.config).online_prescribed
+    node_set = scene.prescribed_nodes(mesh, cell.lesion) if prescribed and not online else None
+    # The study's own configurations, fixed (its published results were computed with them):
+    # robust prescribed online and sticking, PBD with the constants calibrated at 4,126 tets.
+    model = build_model(
+        mesh,
+        shape,
+        cell.method,
+        cell.config.value,
+        None,
+        None,
+        online if prescribed else None,
+        node_set,
+        pbd_config=PBDConfig.for_profile(cell.config.value),
+    )
+    return model, shape
 
 
 @functools.cache

@@ -26,8 +26,7 @@ def add_study_arguments(study: argparse.ArgumentParser) -> None:
         "--methods",
         dest="methods",
         default=None,
-        help="comma-separated contact methods (default lm,penalty,prescribed,pbd; --robot: "
-        "lm,penalty)",
+        help="comma-separated contact methods (default lm,penalty,prescribed,pbd)",
     )
     study.add_argument(
         "--levels",
@@ -80,7 +79,7 @@ def add_study_arguments(study: argparse.ArgumentParser) -> None:
         action="store_true",
         help="hold the probe with the arm (probegym/BreastCompress-v0) and compare each cell "
         "with the kinematic one; writes to OUT/robot (--quick: levels 623,1363, lesions 1,10, "
-        "lm and penalty, robust; about a minute)",
+        "robust; about two minutes)",
     )
 
 
@@ -123,7 +122,7 @@ def spec_from_args(args: argparse.Namespace) -> StudySpec:
     reference = args.reference_level or (
         QUICK_REFERENCE_LEVEL if args.quick else PHANTOM_LEVELS[-1]
     )
-    methods = args.methods or ("lm,penalty" if robot else "lm,penalty,prescribed,pbd")
+    methods = args.methods or "lm,penalty,prescribed,pbd"
     configs = args.config or ("robust" if robot and args.quick else "paper,robust")
     return StudySpec(
         scene=args.scene,

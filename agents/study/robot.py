@@ -43,13 +43,22 @@ from tissue.errors import ConfigError, TissueInputError
 
 #: The environment the robot cells run in.
 ROBOT_ENV_ID = "probegym/BreastCompress-v0"
-#: The methods whose environment tissue is the study's own in both profiles. The front door
-#: builds robust prescribed displacement sliding with a skin guard (the study: sticking) and
-#: PBD with its per-mesh calibration and skin contact (the study: fixed constants), so their
-#: robot cells would not be comparable with the kinematic ones.
-ROBOT_METHODS = ("lm", "penalty")
+#: The methods whose environment tissue is the study's own configuration in both profiles:
+#: their kinematic twins may be read from the kinematic study's results. The front door
+#: builds robust prescribed displacement sliding with a skin guard (the study: sticking),
+#: paper prescribed with the node set chosen at first contact (the study: the published
+#: set) and PBD with its per-mesh calibration (the study: fixed constants), so the twins of
+#: those cells run the kinematic protocol on the environment's own tissue
+#: (:func:`agents.study.cell.run_cell` with its ``tissue_spec``).
+STUDY_TWIN_METHODS = ("lm", "penalty")
+#: Where a robot cell's kinematic twin came from (the record's ``kinematic.source``): the
+#: kinematic study's results, the study's cell run now, or the study's protocol run on the
+#: environment's own tissue.
+TWIN_FROM_RESULTS = "results.jsonl"
+TWIN_RUN = "run"
+TWIN_ENV_TISSUE = "run on the environment's tissue"
 #: ``--robot --quick``: two coarse levels and two lesions (the dome's top and lesion 10,
-#: under skin tilted 26 degrees), lm and penalty, robust: about a minute on 2 cores.
+#: under skin tilted 26 degrees), every method, robust.
 ROBOT_QUICK_LEVELS = (623, 1363)
 ROBOT_QUICK_LESIONS = (1, 10)
 #: Where a robot study writes, inside the study's ``--out``.
@@ -78,14 +87,6 @@ def check_robot_spec(spec: StudySpec) -> None:
             "home pose and workspace are placed for the built-in phantom, on the table at the "
             "origin; the published scene lies in its own frame (6-14 cm under that table, "
             "pressed partly upwards), where no placement of the arm is defined"
-        )
-    other = [m for m in spec.methods if m not in ROBOT_METHODS]
-    if other:
-        raise ConfigError(
-            f"--robot runs --methods {','.join(ROBOT_METHODS)}; got {','.join(other)}: the "
-            "environment builds prescribed displacement (robust: sliding, skin guard) and PBD "
-            "(per-mesh calibration) unlike the kinematic study, so those cells would not "
-            f"compare; give --methods {','.join(ROBOT_METHODS)}"
         )
     deepest = max_robot_depth_m()
     if spec.depths_m[-1] > deepest + 1e-12:
@@ -146,9 +147,11 @@ def tracking_error(
     return along, across, math.degrees(rotation_angle(actual_rot, rotation))
 
 
-def _as_contact_result(step: Any) -> ContactResult:
-    """A tissue step as the stability monitor reads it (the skin's penetration standing for
-    the method's own measure, which the front door does not expose)."""
+def _as_contact_result(step: Any, tissue: Any) -> ContactResult:
+    """A tissue step as the stability monitor reads it, with the penetration the kinematic
+    study bounds: the method's own measure, over the points it acts on (the collision
+    surface for LM and penalty, the volume's boundary nodes for prescribed displacement and
+    PBD), read from ``tissue``'s contact model, not the skin's that the front door reports."""
     return ContactResult(
         status=step.status,
         time_s=step.time_s,
@@ -156,7 +159,7 @@ def _as_contact_result(step: Any) -> ContactResult:
         torque_world=step.torque_world_nm,
         contact_points=step.contact_points_world_m,
         contact_forces=step.contact_forces_world_n,
-        penetration_max_m=float(step.skin_penetration_m),
+        penetration_max_m=float(tissue.contact_model.penetration_max_m()),
         landmarks=step.landmarks_world_m,
         compute_ms=step.diagnostics.compute_ms,
     )
@@ -167,15 +170,21 @@ def _arm_finite(env: Any) -> bool:
     return bool(np.all(np.isfinite(data.qpos)) and np.all(np.isfinite(data.qvel)))
 
 
-def run_robot_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
+def run_robot_cell(spec: StudySpec, cell: Cell, env: Any | None = None) -> dict[str, Any]:
     """Run one cell with the arm holding the probe; returns its record (no kinematic
-    comparison yet: :func:`compare_with_kinematic` adds it)."""
+    comparison yet: :func:`agents.study.robot_runner.compare_with_kinematic` adds it).
+
+    ``env``: the cell's environment (:func:`make_robot_env`), left open for the caller (whose
+    twin reads its tissue's spec); None: made here and closed.
+    """
     from envs.rotations import quat_matrix
 
     started = time.perf_counter()
     scene = scene_for(spec.scene)
     mesh = scene.mesh(cell.level)
-    env = make_robot_env(cell)
+    owned = env is None
+    if env is None:
+        env = make_robot_env(cell)
     try:
         if not np.array_equal(env.tissue.rest_nodes_m, mesh.nodes):
             raise RuntimeError(f"the environment's level {cell.level} mesh is not the study's")
@@ -230,7 +239,9 @@ def run_robot_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
                 }
             else:
                 actual, _ = env.probe_pose()
-                found = monitor.check(_as_contact_result(step), env.tissue.positions_m, actual)
+                found = monitor.check(
+                    _as_contact_result(step, env.tissue), env.tissue.positions_m, actual
+                )
                 if found is not None:
                     instability = {"step": steps, "kind": found.kind, "detail": found.detail}
             steps += 1
@@ -269,6 +280,7 @@ def run_robot_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
                     "tracked_m": step.landmarks_world_m[tracked].tolist(),
                     "force_normal_n": env.normal_force_n(step),
                     "skin_penetration_m": float(step.skin_penetration_m),
+                    "penetration_max_m": float(env.tissue.contact_model.penetration_max_m()),
                     "along_m": along,
                     "across_m": across,
                     "orientation_deg": turned,
@@ -281,7 +293,8 @@ def run_robot_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
             "orientation_max_deg": _abs_max(trace.orientation_deg, moving),
         }
     finally:
-        env.close()
+        if owned:
+            env.close()
     assert mesh.landmarks is not None
     return {
         "key": cell.key,
@@ -299,6 +312,8 @@ def run_robot_cell(spec: StudySpec, cell: Cell) -> dict[str, Any]:
         "tracked_m": [d["tracked_m"] for d in depths],
         "force_normal_n": [d["force_normal_n"] for d in depths],
         "skin_penetration_m": [d["skin_penetration_m"] for d in depths],
+        # The method's own measure, as the kinematic record's ``penetration_max_m``.
+        "penetration_max_m": [d["penetration_max_m"] for d in depths],
         # Probe minus target at each settled depth: along the pressing axis [m] (negative:
         # the probe stops short, pushed back by the tissue against the impedance), across
         # it [m], and the angle between the orientations [deg].

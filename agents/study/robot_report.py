@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from agents.outputs import strict_json
+from agents.study.robot import TWIN_ENV_TISSUE, TWIN_FROM_RESULTS, TWIN_RUN
 from agents.study.spec import StudySpec
 from agents.study.tables import level_and_tets, method_colour, method_label, stability_table
 
@@ -33,6 +34,18 @@ def _n(value: float | None) -> str:
     return "–" if value is None else f"{value:.3f}"
 
 
+#: How ``robot.md`` names where each kinematic twin came from (the record's
+#: ``kinematic.source``, :mod:`agents.study.robot_runner`).
+_TWIN_SOURCES = {
+    TWIN_FROM_RESULTS: "the kinematic study's cell, read from its results.jsonl",
+    TWIN_RUN: "the kinematic study's cell, run with the study's configuration",
+    TWIN_ENV_TISSUE: (
+        "the study's protocol run kinematically on the environment's own tissue (its contact "
+        "settings differ from the kinematic study's)"
+    ),
+}
+
+
 def cell_table(records: list[dict[str, Any]]) -> str:
     """The Markdown tables of ``robot.md``: one per profile, method and level."""
     groups: dict[tuple[str, str, int], list[dict[str, Any]]] = {}
@@ -41,8 +54,11 @@ def cell_table(records: list[dict[str, Any]]) -> str:
     parts = []
     for (config, method, level), group in sorted(groups.items()):
         tets = group[0]["tets"]
+        sources = sorted({r["kinematic"]["source"] for r in group})
         lines = [
             f"### {config} profile, {method_label(method)}, {level_and_tets(level, tets)}",
+            "",
+            f"Kinematic twin: {', '.join(_TWIN_SOURCES.get(s, s) for s in sources)}.",
             "",
             "| lesion | depth [mm] | force robot [N] | force kinematic [N] | lesion error "
             "robot vs kinematic [mm] | along [mm] | across [mm] | orientation [deg] |",
@@ -131,10 +147,12 @@ def plot_robot_vs_kinematic(path: Path, records: list[dict[str, Any]]) -> None:
         colour = method_colour(record["method"])
         depths = 1e3 * np.asarray(record["depths_m"])
         kinematic = record["kinematic"]
-        kin_depths = 1e3 * np.asarray(kinematic["depths_m"])
+        # A kinematic record lists every planned depth; its forces only those reached.
+        kin_force = kinematic["force_normal_n"]
+        kin_depths = 1e3 * np.asarray(kinematic["depths_m"][: len(kin_force)])
         line = force.plot(depths, record["force_normal_n"], "o-", color=colour, alpha=0.7,
                           label=_label(record))[0]  # fmt: skip
-        force.plot(kin_depths, kinematic["force_normal_n"], "x--", color=line.get_color(),
+        force.plot(kin_depths, kin_force, "x--", color=line.get_color(),
                    alpha=0.5)  # fmt: skip
         values = [np.nan if e is None else 1e3 * e for e in record["lesion_error_m"]]
         error.plot(depths, values, "o-", color=colour, alpha=0.7, label=_label(record))

@@ -24,12 +24,18 @@ from agents.study.cell import run_cell, scene_for
 from agents.study.robot import (
     ROBOT_DIR,
     ROBOT_ENV_ID,
+    STUDY_TWIN_METHODS,
+    TWIN_ENV_TISSUE,
+    TWIN_FROM_RESULTS,
+    TWIN_RUN,
     check_robot_spec,
+    make_robot_env,
     max_press_m,
     run_robot_cell,
 )
 from agents.study.runner import RESULTS_FILE, SPEC_FILE, read_results, study_lesions
-from agents.study.spec import StudySpec
+from agents.study.spec import Cell, StudySpec
+from tissue import TissueSpec
 from tissue.errors import ConfigError
 
 #: Physics settings a resumed robot study must keep (the study's own, and the arm's).
@@ -63,6 +69,27 @@ def compare_with_kinematic(
         },
         "lesion_error_m": errors,
     }
+
+
+def kinematic_twin(
+    spec: StudySpec,
+    cell: Cell,
+    tissue_spec: TissueSpec,
+    twins: dict[str, dict[str, Any]],
+) -> tuple[dict[str, Any], str]:
+    """The kinematic cell to compare a robot cell with, and where it came from.
+
+    LM and penalty (:data:`~agents.study.robot.STUDY_TWIN_METHODS`): the kinematic study's
+    record in ``twins`` when there is one, else the study's cell run now. Other methods:
+    the study's protocol run now on ``tissue_spec``, the environment's own tissue, so that
+    robot and kinematic cells differ only in who holds the probe.
+    """
+    if cell.method not in STUDY_TWIN_METHODS:
+        return run_cell(spec, cell, tissue_spec), TWIN_ENV_TISSUE
+    twin = twins.get(cell.key)
+    if twin is not None:
+        return twin, TWIN_FROM_RESULTS
+    return run_cell(spec, cell), TWIN_RUN
 
 
 def kinematic_records(
@@ -143,11 +170,13 @@ def run_robot_study(
 
         for cell in tqdm(cells, desc="study --robot", disable=not progress):
             try:
-                record = run_robot_cell(spec, cell)
-                twin = twins.get(cell.key)
-                source = "results.jsonl" if twin is not None else "run"
-                if twin is None:
-                    twin = run_cell(spec, cell)
+                env = make_robot_env(cell)
+                try:
+                    record = run_robot_cell(spec, cell, env)
+                    tissue_spec = env.tissue.spec
+                finally:
+                    env.close()
+                twin, source = kinematic_twin(spec, cell, tissue_spec, twins)
                 record = compare_with_kinematic(record, twin, source)
             except (ConfigError, KeyboardInterrupt):
                 raise
