@@ -54,6 +54,8 @@ class ForceScanConfig:
         hard_force_n: contact force that ends the episode as a failure [N].
         failure_reward: the ``failure`` term on a failing last step (<= 0); None:
             -(max_episode_steps + 1), so that a failing episode returns less than any other.
+        progress_weight: what the whole path's progress earns (> 0): the ``progress`` term
+            is this times the step's progress as a share of the path's length.
         workspace_m: how far the probe's target may go from the start sideways [m].
         max_press_m: and into the tissue, along the start's pressing direction [m].
         max_lift_m: and away from it [m].
@@ -68,6 +70,7 @@ class ForceScanConfig:
     min_good_share: float = 0.9
     hard_force_n: float = 10.0
     failure_reward: float | None = None
+    progress_weight: float = 1.0
     workspace_m: float = 0.06
     max_press_m: float = 0.035
     max_lift_m: float = 0.02
@@ -85,6 +88,7 @@ class ForceScanConfig:
                 "max_press_m",
                 "max_lift_m",
                 "max_turn_rad",
+                "progress_weight",
             ),
         )
         lengths = number_pair(self.path_length_range_m)
@@ -174,12 +178,13 @@ class ForceScanEnv(ProbeEnv):
     ## Rewards
 
     Named terms, logged already weighted in ``info["reward_terms"]`` (the reward is their
-    sum): ``progress`` (+1 x the step's change of progress as a share of the path's length:
-    the whole chord earns 1), ``force`` (-0.3 x the normal force's distance from the 1-3 N
-    band, as a share of the band's width, capped at 1), ``tilt`` (-0.3 x the tilt beyond 5
-    degrees, as a share of 5 degrees, capped at 1), ``smoothness`` (-0.1 x the mean squared
-    change of the action / 4), ``success`` (+1 on the step that succeeds) and ``failure``
-    (-(max_episode_steps + 1) on a failing last step, or ``failure_reward``).
+    sum): ``progress`` (+``progress_weight``, default 1, x the step's change of progress as a
+    share of the path's length: the whole chord earns ``progress_weight``), ``force`` (-0.3 x
+    the normal force's distance from the 1-3 N band, as a share of the band's width, capped
+    at 1), ``tilt`` (-0.3 x the tilt beyond 5 degrees, as a share of 5 degrees, capped at 1),
+    ``smoothness`` (-0.1 x the mean squared change of the action / 4), ``success`` (+1 on
+    the step that succeeds) and ``failure`` (-(max_episode_steps + 1) on a failing last
+    step, or ``failure_reward``).
 
     ## Starting state
 
@@ -256,8 +261,8 @@ class ForceScanEnv(ProbeEnv):
         "success": ("force_feedback",),
         "failure": ("force_feedback",),
     }
+    #: The per-step terms' weights (progress's is ``ForceScanConfig.progress_weight``).
     WEIGHTS: ClassVar[dict[str, float]] = {
-        "progress": 1.0,
         "force": 0.3,
         "tilt": 0.3,
         "smoothness": 0.1,
@@ -458,7 +463,7 @@ class ForceScanEnv(ProbeEnv):
         excess = max(0.0, self._tilt - cfg.max_tilt_rad) / cfg.max_tilt_rad
         change = float(np.mean((action - self._last_action) ** 2)) / 4.0
         return {
-            "progress": weights["progress"] * (self._progress - before) / self._length,
+            "progress": cfg.progress_weight * (self._progress - before) / self._length,
             "force": -weights["force"] * min(1.0, outside),
             "tilt": -weights["tilt"] * min(1.0, excess),
             "smoothness": -weights["smoothness"] * min(1.0, change),

@@ -74,6 +74,20 @@ def test_same_seed_same_episode_and_reward_is_the_sum_of_its_terms(contact: str)
     assert any(record[4]["normal_force_n"] > 0.1 for record in first[1:])
 
 
+def test_progress_weight_scales_the_progress_term_alone() -> None:
+    base = _rollout(_make("lm"), seed=3, steps=20)
+    heavy = _rollout(_make("lm", progress_weight=20.0), seed=3, steps=20)
+    moved = 0
+    for a, b in zip(base[1:], heavy[1:], strict=True):
+        terms, heavier = a[4]["reward_terms"], b[4]["reward_terms"]
+        assert heavier["progress"] == pytest.approx(20.0 * terms["progress"], rel=1e-12, abs=1e-15)
+        assert {k: v for k, v in heavier.items() if k != "progress"} == {
+            k: v for k, v in terms.items() if k != "progress"
+        }
+        moved += terms["progress"] != 0.0
+    assert moved > 0
+
+
 def test_the_seed_draws_the_path() -> None:
     """The start touches the skin above a target lesion, normal to it; the path runs 30-40
     mm along the probe's elevation axis (either way) to a point on the rest skin."""
@@ -242,6 +256,7 @@ def test_an_unstable_tissue_ends_the_episode_with_its_flag(monkeypatch) -> None:
         ({"min_good_share": 1.5}, "min_good_share .*1.5"),
         ({"min_good_share": 0.0}, "min_good_share"),
         ({"hard_force_n": 0.0}, "hard_force_n"),
+        ({"progress_weight": 0.0}, "progress_weight .*0.0"),
         ({"target_lesions": (11,)}, "target_lesions"),
         ({"colour": "red"}, "unknown keyword argument"),
     ],
