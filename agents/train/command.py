@@ -61,6 +61,13 @@ def add_train_parser(commands: Any) -> None:
         "next stage",
     )
     parser.add_argument(
+        "--pretrain-scripted",
+        type=int,
+        default=0,
+        metavar="EPISODES",
+        help="first clone the task's scripted policy from this many of its episodes (PPO)",
+    )
+    parser.add_argument(
         "--ray",
         default=None,
         metavar="ADDRESS",
@@ -134,6 +141,7 @@ def _settings(
         checkpoint_every=args.checkpoint_every,
         normalize=not args.no_normalize,
         init_from=args.init_from,
+        pretrain_episodes=args.pretrain_scripted,
         progress=not args.no_progress and args.ray is None,
     )
 

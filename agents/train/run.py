@@ -106,6 +106,9 @@ class TrainSettings:
             folder or a model ``.zip`` in one, with its normalisation statistics): the
             next stage of a curriculum. Same env id, algorithm and normalisation; its own
             hyper-parameters are kept.
+        pretrain_episodes: before training a new PPO model, clone the task's scripted
+            policy from this many of its episodes (:mod:`agents.train.imitation`; seeds
+            from seed + 20,000); 0: none. Written to ``pretrain.json``.
     """
 
     env_id: str
@@ -122,6 +125,7 @@ class TrainSettings:
     hyperparameters: dict[str, Any] = field(default_factory=dict)
     progress: bool = True
     init_from: Path | None = None
+    pretrain_episodes: int = 0
 
     def __post_init__(self) -> None:
         import envs
@@ -138,6 +142,20 @@ class TrainSettings:
                 raise TrainError(f"{name} must be a whole number >= 1; got {value!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise TrainError(f"seed must be a whole number >= 0; got {self.seed!r}")
+        episodes = self.pretrain_episodes
+        if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 0:
+            raise TrainError(
+                f"--pretrain-scripted must be a whole number of episodes >= 0; got {episodes!r}"
+            )
+        if episodes and self.algo != "ppo":
+            raise TrainError(
+                f"--pretrain-scripted clones into PPO's Gaussian policy; got --algo {self.algo}: "
+                "use --algo ppo or drop --pretrain-scripted"
+            )
+        if episodes and self.init_from is not None:
+            raise TrainError(
+                "--pretrain-scripted starts a new model and --init-from a trained one; give one"
+            )
         if Path(self.out).exists() and not Path(self.out).is_dir():
             raise TrainError(f"--out {self.out} is a file; give a folder")
 
@@ -164,6 +182,8 @@ class TrainSettings:
         }
         if self.init_from is not None:
             identity["init_from"] = str(self.init_from)
+        if self.pretrain_episodes:
+            identity["pretrain_episodes"] = self.pretrain_episodes
         return identity
 
 
@@ -250,6 +270,8 @@ def train(settings: TrainSettings, command: str | None = None, log: Any = print)
             tensorboard_log=str(out / "tb"),
             **hyper,
         )
+        if settings.pretrain_episodes:
+            _pretrain(model, venv if settings.normalize else None, settings, out, log)
     _write_config(out, settings, command)
     per_env = max(1, settings.n_envs)
     callbacks = CallbackList(
@@ -299,6 +321,34 @@ def train(settings: TrainSettings, command: str | None = None, log: Any = print)
         f"{time.perf_counter() - started:.0f} s: {final}"
     )
     return final
+
+
+def _pretrain(
+    model: Any, normalization: Any | None, settings: TrainSettings, out: Path, log: Any
+) -> None:
+    """Clone the scripted policy into the new ``model``; ``pretrain.json`` says how."""
+    from agents.train.imitation import clone_into, scripted_demonstrations
+
+    started = time.perf_counter()
+    demonstrations = scripted_demonstrations(
+        settings.env_id, settings.env_kwargs, settings.pretrain_episodes, settings.seed + 20_000
+    )
+    losses = clone_into(model, demonstrations, normalization, seed=settings.seed)
+    record = {
+        "episodes": demonstrations.episodes,
+        "successes": demonstrations.successes,
+        "samples": demonstrations.samples,
+        "epochs": len(losses),
+        "first_epoch_mse": losses[0],
+        "last_epoch_mse": losses[-1],
+        "wall_s": time.perf_counter() - started,
+    }
+    (out / "pretrain.json").write_text(json.dumps(record, indent=2) + "\n")
+    log(
+        f"cloned the scripted policy from {demonstrations.episodes} episodes "
+        f"({demonstrations.successes} succeeded, {demonstrations.samples} steps): action MSE "
+        f"{losses[0]:.4f} -> {losses[-1]:.4f}"
+    )
 
 
 def _starting_model(settings: TrainSettings) -> tuple[Path, Path | None] | None:

@@ -33,6 +33,9 @@ def _train(out: Path, *extra: str) -> int:
         (["probegym/Nope-v0"], "unknown environment 'probegym/Nope-v0'; choose one of"),
         ([ENV_ID, "--algo", "dqn"], "--algo 'dqn': choose from ppo, sac"),
         ([ENV_ID, "--seed", "1", "--seeds", "1,2"], "give --seed or --seeds, not both"),
+        ([ENV_ID, "--pretrain-scripted", "-1"], "--pretrain-scripted must be a whole number"),
+        ([ENV_ID, "--algo", "sac", "--pretrain-scripted", "2"], "use --algo ppo or drop"),
+        ([ENV_ID, "--pretrain-scripted", "2", "--init-from", "x"], "give one"),
     ],
 )
 def test_bad_requests_are_named(args, message, tmp_path: Path, capsys) -> None:
@@ -61,6 +64,42 @@ def test_a_path_that_is_no_model_is_refused(tmp_path: Path) -> None:
         load_policy(tmp_path)
     with pytest.raises(TrainedPolicyError, match="neither a probegym train folder"):
         load_policy(tmp_path / "missing.zip")
+
+
+def test_cloning_fits_the_scripted_policy_s_actions() -> None:
+    pytest.importorskip("stable_baselines3", reason=RL_EXTRA)
+    import torch
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    from agents.train.imitation import clone_into, scripted_demonstrations
+    from agents.train.run import DEFAULT_HYPERPARAMETERS
+
+    torch.set_num_threads(1)
+    kwargs = {"contact": "lm", "mesh": 623}
+    demos = scripted_demonstrations(ENV_ID, kwargs, episodes=2, seed=0)
+    assert demos.episodes == 2 and demos.samples == len(demos.observations["wrench"]) > 20
+    assert np.all(np.abs(demos.actions) <= 1.0)
+    venv = make_vec_env(f"envs:{ENV_ID}", n_envs=1, seed=0, env_kwargs=kwargs,
+                        vec_env_cls=DummyVecEnv)  # fmt: skip
+    venv = VecNormalize(venv, norm_obs_keys=list(venv.observation_space.spaces))  # type: ignore[attr-defined]
+    model = PPO("MultiInputPolicy", venv, seed=0, device="cpu", **DEFAULT_HYPERPARAMETERS["ppo"])
+
+    def action_error() -> float:
+        observed = venv.normalize_obs(demos.observations)
+        acted, _ = model.predict(observed, deterministic=True)
+        return float(np.mean((acted - demos.actions) ** 2))
+
+    counted = venv.obs_rms["wrench"].count
+    losses = clone_into(model, demos, venv, epochs=20)
+    # The normalisation learnt the demonstrations' statistics first.
+    assert venv.obs_rms["wrench"].count == pytest.approx(counted + demos.samples)
+    before = losses[0]
+    # Fitted: the error falls by 10 x or more over the epochs (measured about 100 x), and
+    # the trained policy's deterministic actions match the demonstrations that closely.
+    assert losses[-1] < 0.1 * before
+    assert action_error() < 0.2 * before
 
 
 @pytest.mark.train
@@ -133,6 +172,17 @@ def test_train_saves_everything_loads_back_and_resumes(tmp_path: Path) -> None:
         after = pickle.load(handle).obs_rms["wrench"].count
     assert after > before > 0  # the statistics learnt on from the first stage's
     assert _train(tmp_path / "other", "--algo", "sac", "--init-from", str(out)) == 2
+    # A run that first clones the scripted policy says so; resumed, it does not clone again.
+    cloned = tmp_path / "cloned"
+    assert _train(cloned, "--steps", "2048", "--pretrain-scripted", "2") == 0
+    record = json.loads((cloned / "pretrain.json").read_text())
+    assert record["episodes"] == 2 and record["samples"] > 20
+    assert record["last_epoch_mse"] < record["first_epoch_mse"]
+    config = json.loads((cloned / "config.json").read_text())
+    assert config["identity"]["pretrain_episodes"] == 2
+    written = (cloned / "pretrain.json").stat().st_mtime_ns
+    assert _train(cloned, "--steps", "4096", "--pretrain-scripted", "2") == 0
+    assert (cloned / "pretrain.json").stat().st_mtime_ns == written
 
 
 @pytest.mark.train
