@@ -192,14 +192,26 @@ class TissueCoupling:
         """The tissue's step with the probe where the substeps left it (positions computed);
         its wrench and stiffness then act until the next."""
         position, rotation = self.probe_pose()
+        # The tissue's input, converted from MuJoCo's pose: the coupling's work, timed apart
+        # from the tissue's step.
+        quat = _quat(rotation)
         started = time.perf_counter()
-        step = self.tissue.step(position, _quat(rotation))
+        step = self.tissue.step(position, quat)
         stepped = time.perf_counter()
         self._q0_pos, self._q0_rot = position, rotation
         if step.status in (tissue.StepStatus.DIVERGED, tissue.StepStatus.SOLVER_FAILED):
             self._w0[:] = 0.0
             self._stiffness[:] = 0.0
             self._stiffness_from = None
+            self._idle = True
+        elif self._idle and step.diagnostics.details.get("asleep"):
+            # Free air, as before: w0 and K were zero and stay so (no force, no contact
+            # point); only K's bookkeeping runs on, as below.
+            if self.linearised and self._stiffness_stale(step, position):
+                self._stiffness_from = (0, position, 0)
+            elif self._stiffness_from is not None:
+                count, where, age = self._stiffness_from
+                self._stiffness_from = (count, where, age + 1)
         else:
             self._w0 = np.concatenate([step.force_world_n, step.torque_world_nm])
             if self.linearised and self._stiffness_stale(step, position):
@@ -212,7 +224,7 @@ class TissueCoupling:
             elif self._stiffness_from is not None:
                 count, where, age = self._stiffness_from
                 self._stiffness_from = (count, where, age + 1)
-        self._idle = not (np.any(self._w0) or np.any(self._stiffness))
+            self._idle = not (np.any(self._w0) or np.any(self._stiffness))
         self.timing["tissue_s"] = stepped - started
         self.timing["stiffness_s"] = time.perf_counter() - stepped
         self.last_step = step

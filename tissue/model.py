@@ -13,10 +13,11 @@ from __future__ import annotations
 import copy
 import hashlib
 import math
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -323,9 +324,37 @@ class Tissue:
         Raises:
             TissueInputError: a non-finite or mis-shaped pose, or a zero quaternion.
         """
+        model = self._model
+        start = time.perf_counter()
+        if model.sleep_if_clear(probe_pos_world, probe_quat_wxyz):
+            return self._asleep_step(start)
         _check_quat(probe_quat_wxyz)
-        result = self._model.step(probe_pos_world, probe_quat_wxyz)
+        result = model.step_after_sleep_check(probe_pos_world, probe_quat_wxyz, start)
         return self._step_result(result)
+
+    def _asleep_step(self, start: float) -> TissueStep:
+        """The step :meth:`ContactModel.sleep_if_clear` took (every free-air step of a
+        resting tissue): what :meth:`_step_result` makes of a sleeping step's result, built
+        directly; ``start``: the step's ``time.perf_counter()`` at its start."""
+        model = self._model
+        version = model.state_version
+        kept = self._centroids
+        if kept is None or kept[0] != version:
+            kept = (version, self._lesions.centroids(model.node_positions, self._tracked))
+            self._centroids = kept
+        return _frozen(
+            TissueStep,
+            status=StepStatus.OK,
+            time_s=model.time_s,
+            force_world_n=np.zeros(3),
+            torque_world_nm=np.zeros(3),
+            contact_points_world_m=np.zeros((0, 3)),
+            contact_forces_world_n=np.zeros((0, 3)),
+            skin_penetration_m=0.0,
+            landmarks_world_m=model.resting_landmarks(),
+            lesion_centroids_world_m=kept[1].copy(),
+            diagnostics=_asleep_diagnostics(1e3 * (time.perf_counter() - start)),
+        )
 
     def reset(
         self, probe_pos_world: ArrayLike | None = None, probe_quat_wxyz: ArrayLike | None = None
@@ -547,6 +576,7 @@ def _check_quat(quat_wxyz: ArrayLike) -> None:
         )
 
 
+_Frozen = TypeVar("_Frozen")
 _ITERATION_KEYS = ("newton_iterations", "iterations", "substeps")
 _ASLEEP_DETAILS = MappingProxyType({"asleep": 1.0})
 _TYPED_KEYS = {
@@ -558,18 +588,36 @@ _TYPED_KEYS = {
 }
 
 
+def _frozen(cls: type[_Frozen], **fields: Any) -> _Frozen:
+    """An instance of the frozen dataclass ``cls`` with ``fields`` (every one of its fields,
+    by name), as its ``__init__`` would make it but without it: a frozen dataclass's
+    ``__init__`` sets each field through ``object.__setattr__``, which costs a sleeping
+    step (every free-air env step) about 2 us per instance. Only for a class without
+    ``__post_init__`` or ``__slots__``, given every field (the sleep tests check that
+    :class:`TissueStep` and :class:`StepDiagnostics` are such classes)."""
+    instance = object.__new__(cls)
+    instance.__dict__.update(fields)
+    return instance
+
+
+def _asleep_diagnostics(compute_ms: float) -> StepDiagnostics:
+    """A sleeping step's diagnostics (known but for its time [ms])."""
+    return _frozen(
+        StepDiagnostics,
+        iterations=0,
+        linear_iterations=0,
+        contact_count=0,
+        sub_motions=1,
+        subdivisions=0,
+        min_volume_ratio=None,
+        compute_ms=compute_ms,
+        details=_ASLEEP_DETAILS,
+    )
+
+
 def _typed_diagnostics(diagnostics: Mapping[str, Any], result: ContactResult) -> StepDiagnostics:
-    if diagnostics.get("asleep"):  # a sleeping step's are known (every env step in free air)
-        return StepDiagnostics(
-            iterations=0,
-            linear_iterations=0,
-            contact_count=0,
-            sub_motions=1,
-            subdivisions=0,
-            min_volume_ratio=None,
-            compute_ms=float(result.compute_ms),
-            details=_ASLEEP_DETAILS,
-        )
+    if diagnostics.get("asleep"):  # a sleeping step's are known
+        return _asleep_diagnostics(float(result.compute_ms))
     iterations = next((diagnostics[key] for key in _ITERATION_KEYS if key in diagnostics), 1)
     ratio = diagnostics.get("min_volume_ratio")
     details = {

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 import tissue
 from tissue.contact.sleep import SLEEP_SAFETY_MARGIN_M
-from tissue.probe import matrix_to_quat, quat_to_matrix
+from tissue.probe import LinearProbeFace, Probe, matrix_to_quat, quat_to_matrix
 
 METHODS = ("penalty", "lm", "prescribed", "pbd")
 PROFILES = ("paper", "robust")
@@ -335,3 +335,145 @@ def test_a_bad_sleep_speed_is_refused_by_name(value: object) -> None:
     with pytest.raises(tissue.TissueInputError, match="sleep_speed_m_s"):
         model.sleep_speed_m_s = value  # type: ignore[assignment]
     assert model.sleep_speed_m_s is None
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_the_compiled_sleep_check_leaves_what_the_full_check_would(
+    built, monkeypatch: pytest.MonkeyPatch, method: str
+) -> None:
+    """A sleeping step the compiled checks settle (``ContactModel.sleep_if_clear``) against
+    one of a copy whose every step takes the full checks: the same decisions, poses, clock
+    and results, bit for bit, from free air (held, swept in split motions, turned) down
+    into contact and back."""
+    fast = _tissue(built, method, "robust", True)
+    (touching, quat), pressing = _frame(fast)
+    above = touching - ABOVE_M * pressing
+    fast.reset(above, quat)
+    full = pickle.loads(pickle.dumps(fast))
+    monkeypatch.setattr(full.contact_model, "sleep_if_clear", lambda *pose: False)
+    taken = []
+    sleep_if_clear = fast.contact_model.sleep_if_clear
+
+    def counted(*pose):
+        taken.append(sleep_if_clear(*pose))
+        return taken[-1]
+
+    monkeypatch.setattr(fast.contact_model, "sleep_if_clear", counted)
+    rotation = quat_to_matrix(quat)
+    lateral = rotation[:, 0]
+    turn = 0.05
+    turned = rotation @ np.array(
+        [[math.cos(turn), -math.sin(turn), 0.0], [math.sin(turn), math.cos(turn), 0.0], [0, 0, 1]]
+    )
+    poses = [(above, quat)] * 2
+    # 2 mm steps, then 12 mm ones (split: longer than max_sub_motion_m), a turn in place
+    # and back.
+    poses += [(above + 0.002 * k * lateral, quat) for k in range(1, 4)]
+    poses += [(above + 0.012 * k * lateral, quat) for k in range(1, 4)]
+    poses += [(above + 0.036 * lateral, matrix_to_quat(turned)), (above, quat)]
+    poses += [(above + 0.001 * k * pressing, quat) for k in range(1, 25)]  # into contact
+    poses += [(above + 0.001 * k * pressing, quat) for k in range(24, -1, -4)]
+    for pose in poses:
+        a, b = fast.step(*pose), full.step(*pose)
+        assert _asleep(a) == _asleep(b)
+        assert a.status is b.status and a.time_s == b.time_s
+        for name in (
+            "force_world_n",
+            "torque_world_nm",
+            "contact_points_world_m",
+            "contact_forces_world_n",
+            "landmarks_world_m",
+            "lesion_centroids_world_m",
+        ):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
+        assert a.skin_penetration_m == b.skin_penetration_m
+        assert a.diagnostics.sub_motions == b.diagnostics.sub_motions
+        ours, theirs = fast.contact_model, full.contact_model
+        assert np.array_equal(ours.probe.position_world, theirs.probe.position_world)
+        assert np.array_equal(ours.probe.quat_wxyz, theirs.probe.quat_wxyz)
+        assert np.array_equal(ours.probe.rotation_world(), theirs.probe.rotation_world())
+        assert ours._last_pose is not None and theirs._last_pose is not None
+        assert all(map(np.array_equal, ours._last_pose, theirs._last_pose))
+        assert np.array_equal(fast.positions_m, full.positions_m)
+    assert fast.contact_model.max_sub_motion_m < 0.012
+    assert sum(taken) >= 10  # the free-air steps, split ones among them
+    assert not all(taken)  # near and in contact: the full path
+
+
+def test_the_compiled_box_test_answers_as_the_probes_own() -> None:
+    """Blocked points in a widened probe box (``sleep_kernel._any_in_box``): the answer of
+    the probe's own point-by-point test (``tissue.probe.pose._any_in_box``), near the box's
+    faces included."""
+    from tissue.contact.sleep_kernel import _any_in_box, blocked_points
+    from tissue.probe.pose import _any_in_box as probe_any_in_box
+
+    probe = Probe(LinearProbeFace())
+    bounds = probe.shape.local_bounds_m()
+    rng = np.random.default_rng(7)
+    answers = set()
+    for _ in range(400):
+        position = rng.uniform(-0.05, 0.05, 3)
+        probe.set_pose(position, rng.normal(size=4))
+        rotation = probe.rotation_world()
+        margin = float(rng.uniform(0.0, 0.005))
+        count = int(rng.integers(1, 200))
+        local = rng.uniform(-0.12, 0.12, (count, 3))
+        # A few points on the widened box's faces, within round-off.
+        face = rng.integers(0, count, 3)
+        axis = rng.integers(0, 3, 3)
+        side = rng.integers(0, 2, 3)
+        local[face, axis] = np.where(side, bounds[1, axis] + margin, bounds[0, axis] - margin)
+        points = np.ascontiguousarray(local @ rotation.T + position)
+        blocks = blocked_points(points)
+        expected = probe_any_in_box(points, position, rotation, bounds, margin)
+        answers.add(bool(expected))
+        assert _any_in_box(*blocks, position, rotation, bounds, margin) == expected
+    assert answers == {True, False}
+
+
+@pytest.mark.parametrize(
+    "position, quat",
+    [
+        ([math.nan, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]),
+        ([0.0, 0.0, math.inf], [1.0, 0.0, 0.0, 0.0]),
+        ([0.0, 0.0], [1.0, 0.0, 0.0, 0.0]),
+        ([0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]),
+        ([0.0, 0.0, 0.0], [math.nan, 0.0, 0.0, 1.0]),
+        ([0.0, 0.0, 0.0], [1.0, 0.0, 0.0]),
+    ],
+)
+def test_a_sleeping_tissue_refuses_a_bad_pose(built, position, quat) -> None:
+    sleeper = _tissue(built, "penalty", "robust", True)
+    (touching, good), pressing = _frame(sleeper)
+    sleeper.reset(touching - ABOVE_M * pressing, good)
+    assert _asleep(sleeper.step(touching - ABOVE_M * pressing, good))
+    time_s = sleeper.time_s
+    with pytest.raises(tissue.TissueInputError):
+        sleeper.step(position, quat)
+    assert sleeper.time_s == time_s
+
+
+def test_the_sleeping_steps_results_are_built_as_their_classes_build_them() -> None:
+    """A sleeping step builds its :class:`tissue.TissueStep` and its diagnostics without
+    their dataclass ``__init__`` (``tissue.model._frozen``): only right for classes that do
+    nothing else when built."""
+    import dataclasses
+
+    from tissue.model import _asleep_diagnostics
+
+    for cls in (tissue.TissueStep, tissue.StepDiagnostics):
+        assert dataclasses.is_dataclass(cls) and cls.__dict__["__dataclass_params__"].frozen
+        assert not hasattr(cls, "__post_init__") and not hasattr(cls, "__slots__")
+    built = _asleep_diagnostics(1.5)
+    assert built == tissue.StepDiagnostics(
+        iterations=0,
+        linear_iterations=0,
+        contact_count=0,
+        sub_motions=1,
+        subdivisions=0,
+        min_volume_ratio=None,
+        compute_ms=1.5,
+        details={"asleep": 1.0},
+    )
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        built.compute_ms = 2.0  # type: ignore[misc]

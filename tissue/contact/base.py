@@ -19,7 +19,8 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from tissue.contact.sleep import FreeAirSleep
+from tissue.contact.sleep import FreeAirSleep, RestPoints
+from tissue.contact.sleep_kernel import clear_of_probe, rotation_matrix
 from tissue.contact.tunnelling import face_samples, skin_behind_probe
 from tissue.errors import TissueInputError
 from tissue.mesh import TetMesh, boundary_faces
@@ -207,6 +208,15 @@ class ContactModel(FreeAirSleep, abc.ABC):
         #: dimension, so that no skin point can pass through the probe within one (a step
         #: whose probe moves farther is split, see :meth:`step`).
         self.max_sub_motion_m = 0.5 * float(np.min(bounds[1] - bounds[0]))
+        # The probe's bounding radius [m], the longest sub-motion [m], the most sub-motions
+        # and its local bounding box [m] (2, 3), as the sleeping step's compiled checks take
+        # them (see RestPoints.kernel_args).
+        self._probe_geometry = (
+            float(probe_shape.bounding_radius_m),
+            self.max_sub_motion_m,
+            MAX_SUB_MOTIONS,
+            np.ascontiguousarray(bounds, dtype=np.float64),
+        )
         # Tunnelling is judged against the volume's boundary (the tissue itself), whatever
         # surface the method holds: the collision surface embedded in a coarse volume can
         # fold over the probe where a method holds the boundary nodes (sticking prescribed
@@ -219,10 +229,10 @@ class ContactModel(FreeAirSleep, abc.ABC):
         # Whether the last step (or the reset) left the tissue out of contact with status
         # ok: only then may the next step sleep.
         self._quiet = True
-        # While the tissue may sleep: the points that must stay clear of the probe [m], the
-        # volume's boundary points [m] and the reach [m] they must be clear by (see
-        # _rest_check). Forgotten whenever the state changes.
-        self._rest: tuple[NDArray[np.float64], NDArray[np.float64], float] | None = None
+        # While the tissue may sleep: the points that must stay clear of the probe, the
+        # volume's boundary points and the reach they must be clear by (see _rest_check).
+        # Forgotten whenever the state changes.
+        self._rest: RestPoints | None = None
         self._rest_known = False
         self._state_version = 0
 
@@ -313,6 +323,85 @@ class ContactModel(FreeAirSleep, abc.ABC):
 
     # ------------------------------------------------------------------ sleep
 
+    def sleep_if_clear(self, position_world: ArrayLike, quat_wxyz: ArrayLike) -> bool:
+        """A step that sleeps (see :meth:`step`), taken when one compiled call settles that
+        it does (the probe well clear of the skin, no exact signed distance needed): True,
+        the probe at the pose and the clock advanced as :meth:`step` would leave them.
+        False: nothing has changed, and the step is :meth:`step_after_sleep_check`'s (which
+        may still sleep). Every free-air step of a resting tissue takes this path."""
+        if self._sleep_speed_m_s is None:
+            return False
+        pose = self._clear_pose(position_world, quat_wxyz)
+        if pose is None:
+            return False
+        position, quat, rotation, pieces = pose
+        self.probe.set_normalised_pose(position, quat, rotation)
+        # The pose seen is the probe's new arrays themselves: it replaces them when it
+        # moves, never changes them in place.
+        self._fall_asleep(self.dt if pieces == 1 else self.dt / pieces, pieces, (position, quat))
+        return True
+
+    def _clear_pose(
+        self, position_world: ArrayLike, quat_wxyz: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], int] | None:
+        """The pose a sleeping step leaves the probe at, where the step sleeps and one
+        compiled call settles it (:func:`~tissue.contact.sleep_kernel.clear_of_probe`): the
+        position [m] (3,), the quaternion (4,) and rotation matrix (3, 3) the probe then
+        holds, and the sub-motions its travel counts. None: the tissue may not sleep, the
+        input is not a finite pose, or the call does not decide (a point near enough to the
+        probe to need its exact signed distance); nothing has changed.
+
+        Where this says the step sleeps, so does :meth:`_may_sleep`, and the pose is what
+        :meth:`~tissue.probe.Probe.set_pose` makes of the input, to the bit: the
+        quaternion's norms are the same numpy dot products, the rest the kernel's IEEE
+        arithmetic."""
+        rest = self._rest_check()
+        if rest is None:
+            return None
+        position = np.array(position_world, dtype=np.float64)
+        quat = np.asarray(quat_wxyz, dtype=np.float64)
+        if position.shape != (3,) or quat.shape != (4,):
+            return None
+        # A finite sum of squares: every component finite (the full path raises otherwise).
+        squared = float(quat.dot(quat))
+        if not (math.isfinite(squared) and math.sqrt(squared) >= 1e-12):
+            return None
+        # Probe.set_pose normalises the quaternion (the one it keeps) and again for its
+        # matrix (quat_to_matrix normalises what it is given).
+        unit = quat / math.sqrt(squared)
+        check = unit / math.sqrt(float(unit.dot(unit)))
+        begin = self._last_pose
+        rotation = np.empty((3, 3))
+        pieces = clear_of_probe(
+            position,
+            unit,
+            check,
+            position if begin is None else begin[0],
+            unit if begin is None else begin[1],
+            begin is not None,
+            rotation,
+            *rest.kernel_args,
+        )
+        if not pieces:
+            return None
+        if pieces == 1:
+            return position, unit, rotation, pieces
+        # Several sub-motions end by setting the end pose again: the probe keeps the
+        # quaternion normalised twice, and its matrix is of that normalised once more.
+        rotation_matrix(check / math.sqrt(float(check.dot(check))), rotation)
+        return position, check, rotation, pieces
+
+    def _fall_asleep(
+        self, h: float, pieces: int, seen: tuple[NDArray[np.float64], NDArray[np.float64]]
+    ) -> None:
+        """A sleeping step's bookkeeping, the probe at its new pose ``seen`` (position [m],
+        quaternion, arrays the probe holds or copies of them): the clock advanced as
+        ``pieces`` sub-motions of ``h`` [s] would advance it, the pose seen."""
+        for _ in range(pieces):
+            self._time += h
+        self._last_pose = seen
+        self._advance_asleep(h, pieces)
+
     def _asleep_step(
         self,
         end: tuple[NDArray[np.float64], NDArray[np.float64]],
@@ -320,15 +409,20 @@ class ContactModel(FreeAirSleep, abc.ABC):
         pieces: int,
         start: float,
     ) -> ContactResult:
-        """A sleeping step (see :meth:`step`): the probe at ``end``, the clock advanced as
-        ``pieces`` sub-motions of ``h`` [s] would advance it; ``start``: the step's
-        ``time.perf_counter()`` at its start."""
-        for _ in range(pieces):
-            self._time += h
+        """A sleeping step that :meth:`sleep_if_clear` left to the full checks (see
+        :meth:`step`): the probe at ``end``, the clock advanced as ``pieces`` sub-motions of
+        ``h`` [s] would advance it; ``start``: the step's ``time.perf_counter()`` at its
+        start."""
         if pieces > 1:
             self.probe.set_pose(*end)  # as the last sub-motion sets it (the same bits)
-        self._last_pose = (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
-        self._advance_asleep(h, pieces)
+        self._fall_asleep(
+            h, pieces, (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
+        )
+        return self._asleep_result(start)
+
+    def _asleep_result(self, start: float) -> ContactResult:
+        """What a sleeping step returns; ``start``: its ``time.perf_counter()`` at its
+        start."""
         diagnostics = {"iterations": 0, "linear_iterations": 0, "sub_motions": 1, "asleep": 1.0}
         return ContactResult(
             status=StepStatus.OK,
@@ -338,7 +432,7 @@ class ContactModel(FreeAirSleep, abc.ABC):
             contact_points=np.zeros((0, 3)),
             contact_forces=np.zeros((0, 3)),
             penetration_max_m=0.0,
-            landmarks=self._resting_landmarks(),
+            landmarks=self.resting_landmarks(),
             compute_ms=1e3 * (time.perf_counter() - start),
             diagnostics=diagnostics,
             skin_penetration_m=0.0,
@@ -373,16 +467,32 @@ class ContactModel(FreeAirSleep, abc.ABC):
         (about 1e-17 m, where it moves it at all): so much does a sleeping step differ from
         it.
 
+        A sleeping step whose checks one compiled call settles takes
+        :meth:`sleep_if_clear`; one with a point near enough to the probe to need its exact
+        signed distance, and every step that runs, :meth:`step_after_sleep_check`.
+
         Args:
             position_world: probe origin (contact-face centre) [m], (3,).
             quat_wxyz: probe orientation, MuJoCo order (w, x, y, z), (4,).
         """
+        start = time.perf_counter()
+        if self.sleep_if_clear(position_world, quat_wxyz):
+            return self._asleep_result(start)
+        return self.step_after_sleep_check(position_world, quat_wxyz, start)
+
+    def step_after_sleep_check(
+        self, position_world: ArrayLike, quat_wxyz: ArrayLike, start: float | None = None
+    ) -> ContactResult:
+        """:meth:`step` once :meth:`sleep_if_clear` has returned False for this pose: the
+        step's full checks (it may still sleep) and, unless it sleeps, its work.
+        ``start``: the step's ``time.perf_counter()`` at its start (None: now)."""
         position = np.asarray(position_world, dtype=np.float64).reshape(-1)
         if position.shape != (3,) or not np.all(np.isfinite(position)):
             raise TissueInputError(
                 f"probe position must be 3 finite numbers [m]; got {position_world!r}"
             )
-        start = time.perf_counter()
+        if start is None:
+            start = time.perf_counter()
         self.probe.set_pose(position, quat_wxyz)
         end = (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
         begin = self._last_pose
@@ -509,7 +619,7 @@ class ContactModel(FreeAirSleep, abc.ABC):
         whatever points the method itself acts on."""
         return self.probe.deepest_inside_m(self.skin.positions(self.node_positions))
 
-    def _resting_landmarks(self) -> NDArray[np.float64]:
+    def resting_landmarks(self) -> NDArray[np.float64]:
         """:meth:`landmark_positions` for a sleeping step: read once per state version
         (the nodes do not move while the tissue sleeps), a copy each time."""
         kept = self._landmarks_kept

@@ -10,11 +10,12 @@ overrides to sleep are :meth:`FreeAirSleep.sleep_reach_m` (None: it never sleeps
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
+from tissue.contact.sleep_kernel import blocked_points
 from tissue.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -56,6 +57,28 @@ def check_sleep_speed(value: object) -> float | None:
     return number
 
 
+class RestPoints(NamedTuple):
+    """What a resting tissue's sleep is decided on (worked out once a rest begins; see
+    :meth:`FreeAirSleep._rest_check`).
+
+    Attributes:
+        points: the points that must stay clear of the probe (the method's contact points,
+            then the skin's) [m], (k, 3).
+        boundary: the volume's boundary points [m], (b, 3).
+        reach_m: the distance [m] the points must be clear by, beyond the probe's travel.
+        kernel_args: the compiled checks' arguments that hold while the tissue rests
+            (:func:`~tissue.contact.sleep_kernel.clear_of_probe`'s from
+            ``bounding_radius`` on: the probe's geometry, the reach, ``points`` and
+            ``boundary`` as :class:`~tissue.contact.sleep_kernel.BlockedPoints`), in its
+            order.
+    """
+
+    points: NDArray[np.float64]
+    boundary: NDArray[np.float64]
+    reach_m: float
+    kernel_args: tuple[Any, ...]
+
+
 class FreeAirSleep:
     """Whether a step may sleep, and the state that decides it (a mixin of
     :class:`~tissue.contact.base.ContactModel`, whose ``__init__`` sets the attributes)."""
@@ -66,9 +89,10 @@ class FreeAirSleep:
         _volume_boundary: SurfacePoints
         _sleep_speed_m_s: float | None
         _quiet: bool
-        _rest: tuple[NDArray[np.float64], NDArray[np.float64], float] | None
+        _rest: RestPoints | None
         _rest_known: bool
         _state_version: int
+        _probe_geometry: tuple[float, float, int, NDArray[np.float64]]
 
         @property
         def node_positions(self) -> NDArray[np.float64]: ...
@@ -140,18 +164,16 @@ class FreeAirSleep:
         self._rest_known = False
         self._state_version += 1
 
-    def _rest_check(self) -> tuple[NDArray[np.float64], NDArray[np.float64], float] | None:
-        """While the tissue may sleep: the points that must stay clear of the probe (the
-        method's contact points, then the skin's) [m], (k, 3), the volume's boundary points
-        [m] (b, 3) and the distance [m] they must be clear by, beyond the probe's travel;
-        None while it may not (in contact, moving, or a method that never sleeps).
-        Worked out once after each step that runs: a sleeping step changes none of it."""
+    def _rest_check(self) -> RestPoints | None:
+        """While the tissue may sleep: the points it is decided on (:class:`RestPoints`);
+        None while it may not (in contact, moving, or a method that never sleeps). Worked
+        out once after each step that runs: a sleeping step changes none of it."""
         if not self._rest_known:
             self._rest = self._rest_points()
             self._rest_known = True
         return self._rest
 
-    def _rest_points(self) -> tuple[NDArray[np.float64], NDArray[np.float64], float] | None:
+    def _rest_points(self) -> RestPoints | None:
         speed = self._sleep_speed_m_s
         if speed is None or not self._quiet:
             return None
@@ -170,7 +192,9 @@ class FreeAirSleep:
             points = np.concatenate([points, skin])
         boundary = self._volume_boundary.positions(positions)
         # A node at the threshold speed moves speed x dt within the step.
-        return points, boundary, reach + SLEEP_SAFETY_MARGIN_M + speed * self.dt
+        reach = reach + SLEEP_SAFETY_MARGIN_M + speed * self.dt
+        kernel_args = (*self._probe_geometry, reach, *blocked_points(points))
+        return RestPoints(points, boundary, reach, (*kernel_args, *blocked_points(boundary)))
 
     def _may_sleep(self, travel_m: float) -> bool:
         """Whether a step whose probe moved ``travel_m`` [m] (:meth:`probe_travel_m`; 0
@@ -178,7 +202,7 @@ class FreeAirSleep:
         rest = self._rest_check()
         if rest is None:
             return False
-        points, boundary, reach = rest
+        points, boundary, reach = rest.points, rest.boundary, rest.reach_m
         # Every probe point stays within its travel of where it ends: a point clear of the
         # probe at its end by travel + reach is clear by reach all along the way.
         reach += travel_m

@@ -97,6 +97,22 @@ class Probe:
         self.position_world = position
         self._rotation = quat_to_matrix(self.quat_wxyz)
 
+    def set_normalised_pose(
+        self,
+        position_world: NDArray[np.float64],
+        quat_wxyz: NDArray[np.float64],
+        rotation: NDArray[np.float64],
+    ) -> None:
+        """Move the probe to a pose its caller has checked and normalised: a finite position
+        [m] (3,), a unit quaternion (4,) and its rotation matrix (3, 3), each what
+        :meth:`set_pose` would hold, to the bit, and each the probe's own from now on (no
+        check, no copy). For the sleeping tissue step
+        (:meth:`tissue.contact.base.ContactModel.sleep_if_clear`), which has worked them out
+        in its compiled checks; anything else wants :meth:`set_pose`."""
+        self.position_world = position_world
+        self.quat_wxyz = quat_wxyz
+        self._rotation = rotation
+
     def rotation_world(self) -> NDArray[np.float64]:
         """Rotation from the probe frame to the world, shape (3, 3) (columns: probe axes)."""
         return self._rotation.copy()
