@@ -59,6 +59,8 @@ def compare_with_kinematic(
     return robot | {
         "kinematic": {
             "source": source,
+            # Records written before twins ran on other tissues were all the study's.
+            "tissue": kinematic.get("tissue", "study"),
             "status": kinematic["status"],
             "stability_percent": kinematic["stability_percent"],
             "depths_m": kinematic["depths_m"],
@@ -90,6 +92,21 @@ def kinematic_twin(
     if twin is not None:
         return twin, TWIN_FROM_RESULTS
     return run_cell(spec, cell), TWIN_RUN
+
+
+def robot_cell_with_twin(
+    spec: StudySpec, cell: Cell, twins: dict[str, dict[str, Any]]
+) -> dict[str, Any]:
+    """One robot cell compared with its kinematic twin (:func:`kinematic_twin`, on the
+    tissue the cell's environment built): its ``results.jsonl`` record."""
+    env = make_robot_env(cell)
+    try:
+        record = run_robot_cell(spec, cell, env)
+        tissue_spec = env.tissue.spec
+    finally:
+        env.close()
+    twin, source = kinematic_twin(spec, cell, tissue_spec, twins)
+    return compare_with_kinematic(record, twin, source)
 
 
 def kinematic_records(
@@ -170,14 +187,7 @@ def run_robot_study(
 
         for cell in tqdm(cells, desc="study --robot", disable=not progress):
             try:
-                env = make_robot_env(cell)
-                try:
-                    record = run_robot_cell(spec, cell, env)
-                    tissue_spec = env.tissue.spec
-                finally:
-                    env.close()
-                twin, source = kinematic_twin(spec, cell, tissue_spec, twins)
-                record = compare_with_kinematic(record, twin, source)
+                record = robot_cell_with_twin(spec, cell, twins)
             except (ConfigError, KeyboardInterrupt):
                 raise
             except Exception as error:  # noqa: BLE001 - a bug in one cell, reported

@@ -17,13 +17,13 @@ from agents.study.robot import (
     TWIN_FROM_RESULTS,
     TWIN_RUN,
     check_robot_spec,
-    make_robot_env,
     run_robot_cell,
 )
 from agents.study.robot_runner import (
     compare_with_kinematic,
     kinematic_records,
     kinematic_twin,
+    robot_cell_with_twin,
     run_robot_study,
 )
 from agents.study.runner import RESULTS_FILE, SPEC_FILE, read_results
@@ -172,15 +172,9 @@ def test_a_twin_on_another_tissue_than_the_cell_s_is_refused() -> None:
 
 
 def test_prescribed_robot_cell_agrees_with_its_twin_on_the_environment_s_tissue() -> None:
-    env = make_robot_env(PRESCRIBED_CELL)
-    try:
-        robot = run_robot_cell(PRESCRIBED, PRESCRIBED_CELL, env)
-        tissue_spec = env.tissue.spec
-    finally:
-        env.close()
-    twin, source = kinematic_twin(PRESCRIBED, PRESCRIBED_CELL, tissue_spec, {})
-    assert source == TWIN_ENV_TISSUE and twin["tissue"] == "environment"
-    record = compare_with_kinematic(robot, twin, source)
+    record = robot_cell_with_twin(PRESCRIBED, PRESCRIBED_CELL, {})
+    assert record["kinematic"]["source"] == TWIN_ENV_TISSUE
+    assert record["kinematic"]["tissue"] == "environment"
     assert record["status"] == "ok" and record["kinematic"]["status"] == "ok"
     assert record["depths_m"] == [0.01] and len(record["penetration_max_m"]) == 1
     force, along = record["force_normal_n"][0], record["tracking"]["along_m"][0]
@@ -195,7 +189,7 @@ def test_prescribed_robot_cell_agrees_with_its_twin_on_the_environment_s_tissue(
     # differs from the twin's by more than the round-off of one protocol.
     study = run_cell(PRESCRIBED, PRESCRIBED_CELL)
     assert study["tissue"] == "study"
-    assert abs(study["force_normal_n"][0] - twin["force_normal_n"][0]) > 1e-3
+    assert abs(study["force_normal_n"][0] - record["kinematic"]["force_normal_n"][0]) > 1e-3
 
 
 @pytest.mark.slow
