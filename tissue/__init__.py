@@ -31,18 +31,12 @@ from tissue.contact.sleep import SLEEP_SPEED_M_S
 from tissue.errors import ConfigError, MaterialError, MeshError, TissueInputError
 from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.lesions import Lesion
-from tissue.model import (
-    StepDiagnostics,
-    Tissue,
-    TissueState,
-    TissueStep,
-    make_tissue,
-    pressing_direction,
-)
+from tissue.model import Tissue, TissueState, make_tissue, pressing_direction
 from tissue.probe import ProbeShape
 from tissue.profile import Profile
 from tissue.spec import PUBLISHED_SCENE, TissueSpec
 from tissue.status import StepStatus
+from tissue.step_result import StepDiagnostics, TissueStep
 from tissue.surface_mesh import SurfaceMesh
 from tissue.threads import ThreadPolicy, configure_threads
 

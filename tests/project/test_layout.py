@@ -83,7 +83,14 @@ TISSUE_LAYERS = (
     ("tissue.sim",),
     ("tissue.contact",),
     ("tissue.pbd",),
-    ("tissue.spec", "tissue.model", "tissue.lesions", "tissue.surface_mesh", "tissue"),
+    (
+        "tissue.spec",
+        "tissue.model",
+        "tissue.step_result",
+        "tissue.lesions",
+        "tissue.surface_mesh",
+        "tissue",
+    ),
 )
 
 

@@ -455,16 +455,16 @@ def test_a_sleeping_tissue_refuses_a_bad_pose(built, position, quat) -> None:
 
 def test_the_sleeping_steps_results_are_built_as_their_classes_build_them() -> None:
     """A sleeping step builds its :class:`tissue.TissueStep` and its diagnostics without
-    their dataclass ``__init__`` (``tissue.model._frozen``): only right for classes that do
+    their dataclass ``__init__`` (``tissue.step_result.frozen``): only right for classes that do
     nothing else when built."""
     import dataclasses
 
-    from tissue.model import _asleep_diagnostics
+    from tissue.step_result import asleep_diagnostics
 
     for cls in (tissue.TissueStep, tissue.StepDiagnostics):
         assert dataclasses.is_dataclass(cls) and cls.__dict__["__dataclass_params__"].frozen
         assert not hasattr(cls, "__post_init__") and not hasattr(cls, "__slots__")
-    built = _asleep_diagnostics(1.5)
+    built = asleep_diagnostics(1.5)
     assert built == tissue.StepDiagnostics(
         iterations=0,
         linear_iterations=0,

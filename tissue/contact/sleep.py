@@ -13,9 +13,9 @@ import math
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
-from tissue.contact.sleep_kernel import blocked_points
+from tissue.contact.sleep_kernel import blocked_points, clear_of_probe, rotation_matrix
 from tissue.errors import ConfigError
 
 if TYPE_CHECKING:
@@ -93,6 +93,8 @@ class FreeAirSleep:
         _rest_known: bool
         _state_version: int
         _probe_geometry: tuple[float, float, int, NDArray[np.float64]]
+        _time: float
+        _last_pose: tuple[NDArray[np.float64], NDArray[np.float64]] | None
 
         @property
         def node_positions(self) -> NDArray[np.float64]: ...
@@ -195,6 +197,85 @@ class FreeAirSleep:
         reach = reach + SLEEP_SAFETY_MARGIN_M + speed * self.dt
         kernel_args = (*self._probe_geometry, reach, *blocked_points(points))
         return RestPoints(points, boundary, reach, (*kernel_args, *blocked_points(boundary)))
+
+    def sleep_if_clear(self, position_world: ArrayLike, quat_wxyz: ArrayLike) -> bool:
+        """A step that sleeps (see :meth:`step`), taken when one compiled call settles that
+        it does (the probe well clear of the skin, no exact signed distance needed): True,
+        the probe at the pose and the clock advanced as :meth:`step` would leave them.
+        False: nothing has changed, and the step is :meth:`step_after_sleep_check`'s (which
+        may still sleep). Every free-air step of a resting tissue takes this path."""
+        if self._sleep_speed_m_s is None:
+            return False
+        pose = self._clear_pose(position_world, quat_wxyz)
+        if pose is None:
+            return False
+        position, quat, rotation, pieces = pose
+        self.probe.set_normalised_pose(position, quat, rotation)
+        # The pose seen is the probe's new arrays themselves: it replaces them when it
+        # moves, never changes them in place.
+        self._fall_asleep(self.dt if pieces == 1 else self.dt / pieces, pieces, (position, quat))
+        return True
+
+    def _clear_pose(
+        self, position_world: ArrayLike, quat_wxyz: ArrayLike
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], int] | None:
+        """The pose a sleeping step leaves the probe at, where the step sleeps and one
+        compiled call settles it (:func:`~tissue.contact.sleep_kernel.clear_of_probe`): the
+        position [m] (3,), the quaternion (4,) and rotation matrix (3, 3) the probe then
+        holds, and the sub-motions its travel counts. None: the tissue may not sleep, the
+        input is not a finite pose, or the call does not decide (a point near enough to the
+        probe to need its exact signed distance); nothing has changed.
+
+        Where this says the step sleeps, so does :meth:`_may_sleep`, and the pose is what
+        :meth:`~tissue.probe.Probe.set_pose` makes of the input, to the bit: the
+        quaternion's norms are the same numpy dot products, the rest the kernel's IEEE
+        arithmetic."""
+        rest = self._rest_check()
+        if rest is None:
+            return None
+        position = np.array(position_world, dtype=np.float64)
+        quat = np.asarray(quat_wxyz, dtype=np.float64)
+        if position.shape != (3,) or quat.shape != (4,):
+            return None
+        # A finite sum of squares: every component finite (the full path raises otherwise).
+        squared = float(quat.dot(quat))
+        if not (math.isfinite(squared) and math.sqrt(squared) >= 1e-12):
+            return None
+        # Probe.set_pose normalises the quaternion (the one it keeps) and again for its
+        # matrix (quat_to_matrix normalises what it is given).
+        unit = quat / math.sqrt(squared)
+        check = unit / math.sqrt(float(unit.dot(unit)))
+        begin = self._last_pose
+        rotation = np.empty((3, 3))
+        pieces = clear_of_probe(
+            position,
+            unit,
+            check,
+            position if begin is None else begin[0],
+            unit if begin is None else begin[1],
+            begin is not None,
+            rotation,
+            *rest.kernel_args,
+        )
+        if not pieces:
+            return None
+        if pieces == 1:
+            return position, unit, rotation, pieces
+        # Several sub-motions end by setting the end pose again: the probe keeps the
+        # quaternion normalised twice, and its matrix is of that normalised once more.
+        rotation_matrix(check / math.sqrt(float(check.dot(check))), rotation)
+        return position, check, rotation, pieces
+
+    def _fall_asleep(
+        self, h: float, pieces: int, seen: tuple[NDArray[np.float64], NDArray[np.float64]]
+    ) -> None:
+        """A sleeping step's bookkeeping, the probe at its new pose ``seen`` (position [m],
+        quaternion, arrays the probe holds or copies of them): the clock advanced as
+        ``pieces`` sub-motions of ``h`` [s] would advance it, the pose seen."""
+        for _ in range(pieces):
+            self._time += h
+        self._last_pose = seen
+        self._advance_asleep(h, pieces)
 
     def _may_sleep(self, travel_m: float) -> bool:
         """Whether a step whose probe moved ``travel_m`` [m] (:meth:`probe_travel_m`; 0
