@@ -10,6 +10,7 @@ The profiles themselves are described in :mod:`tissue.profile`.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -62,6 +63,14 @@ class TissueSpec:
         mesh_scale: (mesh file) factor to metres (0.001 for a mesh in millimetres).
         scene_lesion: (published scene) the tumour whose published node set the paper
             profile's prescribed displacement holds.
+        collision_edge_m: the skin's resolution: the edge length [m] of the collision surface
+            contact acts on. None (the default): the mesh's own surface (the phantom's
+            1,004 triangles and the published scene's ``breast_500.stl``, as in the paper;
+            a mesh file's boundary). A length builds one at that scale
+            (:mod:`tissue.mesh.skin`): the phantom's dome meshed again by gmsh, any other
+            surface refined by edge bisection; it must lie between the volume's boundary
+            resolution and the finest a step can afford (the error names the range). The
+            environments use a skin at the probe's scale (``envs.probe_env``).
         sleep_speed_m_s: let the tissue sleep [m/s]: a step with the tissue at rest (every
             node slower than this), out of contact and the probe clear of the skin by more
             than its travel in the step and the method's reach does no tissue work at all
@@ -86,9 +95,21 @@ class TissueSpec:
     fixed_nodes_file: str | os.PathLike[str] | None = None
     mesh_scale: float = 1.0
     scene_lesion: int | None = None
+    collision_edge_m: float | None = None
     sleep_speed_m_s: float | None = None
 
     def __post_init__(self) -> None:
+        if self.collision_edge_m is not None:
+            edge = self.collision_edge_m
+            if isinstance(edge, bool) or not isinstance(edge, (int, float, np.floating)):
+                raise ConfigError(
+                    f"collision_edge_m must be a length in metres or None; got {edge!r}"
+                )
+            if not (math.isfinite(float(edge)) and float(edge) > 0.0):
+                raise ConfigError(
+                    f"collision_edge_m must be a positive length in metres; got {edge!r}"
+                )
+            object.__setattr__(self, "collision_edge_m", float(edge))
         object.__setattr__(self, "sleep_speed_m_s", check_sleep_speed(self.sleep_speed_m_s))
         method = contact_method(self.contact)
         object.__setattr__(self, "contact", method)
@@ -242,28 +263,34 @@ class ResolvedTissue:
 def load_spec_mesh(spec: TissueSpec) -> TetMesh:
     """The tet mesh ``spec.mesh`` names (phantom levels are generated once and cached)."""
     kind = spec.mesh_kind()
-    if kind == "mesh":
-        assert isinstance(spec.mesh, TetMesh)
-        return spec.mesh
     if kind == "level":
         from tissue.mesh.phantom import breast_phantom
 
         assert isinstance(spec.mesh, (int, str, np.integer))
-        return breast_phantom(int(spec.mesh))
-    if kind == "scene":
+        return breast_phantom(int(spec.mesh), collision_edge_m=spec.collision_edge_m)
+    if kind == "mesh":
+        assert isinstance(spec.mesh, TetMesh)
+        mesh = spec.mesh
+    elif kind == "scene":
         from tissue.mesh.paper_scene import load_paper_scene
 
-        return load_paper_scene(published_scene_dir(spec.mesh)).mesh
-    from tissue.mesh.io import load_tet_mesh
+        mesh = load_paper_scene(published_scene_dir(spec.mesh)).mesh
+    else:
+        from tissue.mesh.io import load_tet_mesh
 
-    assert isinstance(spec.mesh, (str, os.PathLike))
-    fixed_file = spec.fixed_nodes_file
-    return load_tet_mesh(
-        Path(spec.mesh),
-        fixed_plane=spec.fixed_plane,
-        fixed_nodes_file=None if fixed_file is None else Path(fixed_file),
-        scale=spec.mesh_scale,
-    )
+        assert isinstance(spec.mesh, (str, os.PathLike))
+        fixed_file = spec.fixed_nodes_file
+        mesh = load_tet_mesh(
+            Path(spec.mesh),
+            fixed_plane=spec.fixed_plane,
+            fixed_nodes_file=None if fixed_file is None else Path(fixed_file),
+            scale=spec.mesh_scale,
+        )
+    if spec.collision_edge_m is None:
+        return mesh
+    from tissue.mesh.skin import with_collision_edge
+
+    return with_collision_edge(mesh, spec.collision_edge_m)
 
 
 def published_scene_dir(mesh: object, hint: str = "give its directory") -> Path:

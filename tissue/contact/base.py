@@ -25,6 +25,7 @@ from tissue.errors import TissueInputError
 from tissue.mesh import TetMesh, boundary_faces
 from tissue.mesh.embedding import BarycentricEmbedding
 from tissue.probe import Probe, ProbeShape
+from tissue.probe.surface_depth import SurfaceDepth, surface_depth
 from tissue.sim.simulator import SimulationConfig
 from tissue.sim.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.status import StepStatus, worst
@@ -47,9 +48,9 @@ class ContactResult:
         landmarks: landmark positions [m], (landmark_count, 3).
         compute_ms: wall time of the step [ms].
         diagnostics: solver details (iterations, residuals, substeps, ...).
-        skin_penetration_m: deepest skin point (collision-surface vertex) inside the probe
-            [m] (>= 0), the same measure for every method
-            (:meth:`ContactModel.skin_penetration_m`).
+        skin_penetration_m: the deepest point of the skin's surface (the collision
+            surface's facets, not only its vertices) inside the probe [m] (>= 0), the same
+            measure for every method (:meth:`ContactModel.skin_depth`).
     """
 
     status: StepStatus
@@ -456,7 +457,14 @@ class ContactModel(FreeAirSleep, abc.ABC):
                 force, torque = np.zeros(3), np.zeros(3)
             elif self.probe_behind_skin(force):
                 status = worst(status, StepStatus.TUNNELLED)
-        diagnostics = {**diagnostics, "sub_motions": pieces}
+        skin = self.skin_depth()
+        if skin.excess_m > self.penetration_bound_m:
+            status = worst(status, StepStatus.PENETRATED)
+        diagnostics = {
+            **diagnostics,
+            "sub_motions": pieces,
+            "skin_vertex_penetration_m": skin.vertex_depth_m,
+        }
         self._quiet = status is StepStatus.OK and points.shape[0] == 0
         elapsed_ms = 1e3 * (time.perf_counter() - start)
         return ContactResult(
@@ -470,7 +478,7 @@ class ContactModel(FreeAirSleep, abc.ABC):
             landmarks=self.landmark_positions(),
             compute_ms=elapsed_ms,
             diagnostics=diagnostics,
-            skin_penetration_m=self.skin_penetration_m(),
+            skin_penetration_m=skin.depth_m,
         )
 
     def sub_motion_count(
@@ -533,11 +541,24 @@ class ContactModel(FreeAirSleep, abc.ABC):
         return self.probe.deepest_inside_m(self.contact_points_world())
 
     def skin_penetration_m(self) -> float:
-        """How far the skin lies inside the probe now [m] (>= 0): the deepest of the
-        collision surface's vertices (the volume's boundary nodes where the mesh has no
-        collision surface) inside the probe's body. Measured the same way for every method,
-        whatever points the method itself acts on."""
-        return self.probe.deepest_inside_m(self.skin.positions(self.node_positions))
+        """How far the skin lies inside the probe now [m] (>= 0): the deepest point of the
+        collision surface's facets (the volume's boundary faces where the mesh has no
+        collision surface) inside the probe's body (:meth:`skin_depth`)."""
+        return self.skin_depth().depth_m
+
+    def skin_depth(self) -> SurfaceDepth:
+        """How the skin lies inside the probe now, measured over its facets, not only its
+        vertices (:func:`tissue.probe.surface_depth.surface_depth`), the same way for every
+        method whatever points the method itself acts on.
+
+        A step is ``penetrated`` (:class:`tissue.status.StepStatus`) when a facet lies
+        deeper than its allowance (how deep a facet of its size can cut the probe's rounded
+        edge with its vertices outside, :func:`tissue.probe.surface_depth.facet_allowance_m`)
+        plus the method's :attr:`penetration_bound_m`: deeper than the method's bound on the
+        points it holds and the skin's resolution together explain."""
+        return surface_depth(
+            self.probe, self.skin.positions(self.node_positions), self.skin.triangles
+        )
 
     def resting_landmarks(self) -> NDArray[np.float64]:
         """:meth:`landmark_positions` for a sleeping step: read once per state version

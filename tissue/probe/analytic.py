@@ -16,6 +16,7 @@ from scipy.spatial import ConvexHull
 from tissue.errors import ConfigError
 from tissue.probe.sdf import _extruded_offset_sdf, _rounded_slab_sdf
 from tissue.probe.shape import ProbeShape, _as_points, _positive_size
+from tissue.probe.surface_depth import CYLINDER, ROUNDED_SLAB, SPHERE
 
 # Default face of the linear probe [m], fitted to ../shared/paper-scene/us_probe_collision.stl
 # (extents 52.89 x 2.69 x 13.20 mm; flat face about 48 x 10.4 mm; stadium-like outline).
@@ -75,6 +76,8 @@ class _RoundedSlab(ProbeShape):
     and extruded in y. Its SDF is exact everywhere, inside included.
     """
 
+    convex = True
+
     def __init__(
         self,
         size_m: tuple[float, float, float],
@@ -109,6 +112,12 @@ class _RoundedSlab(ProbeShape):
         r = self.edge_radius_m
         # The body's mid-plane is at y = -hy, so the face (top) lies at y = 0.
         return _rounded_slab_sdf(p, hx - r, hz - r, self.corner_radius_m - r, hy, hy - r, r)
+
+    def compiled_distance(self) -> tuple[int, NDArray[np.float64]]:
+        hx, hy, hz = self._half
+        r = self.edge_radius_m
+        params = np.array([hx - r, hz - r, self.corner_radius_m - r, hy, hy - r, r])
+        return ROUNDED_SLAB, params
 
     def surface(self) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         if self._surface is None:
@@ -227,8 +236,11 @@ class SphereProbe(ProbeShape):
         radius_m: radius R [m].
     """
 
+    convex = True
+
     def __init__(self, radius_m: float) -> None:
         self.radius_m = _positive_size(radius_m, "sphere radius")
+        self.edge_radius_m = self.radius_m
         self.name = f"sphere:{self.radius_m:g}"
         self.bounding_radius_m = 2.0 * self.radius_m
         self._centre = np.array([0.0, -self.radius_m, 0.0])
@@ -245,6 +257,9 @@ class SphereProbe(ProbeShape):
         normal[at_centre] = (0.0, 1.0, 0.0)
         return length - self.radius_m, normal
 
+    def compiled_distance(self) -> tuple[int, NDArray[np.float64]]:
+        return SPHERE, np.array([self.radius_m])
+
     def surface(self) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         if self._surface is None:
             points = self._centre + self.radius_m * _unit_sphere_directions(2 * _SPHERE_RINGS)
@@ -259,6 +274,8 @@ class CylinderProbe(ProbeShape):
         radius_m: radius of the face disc [m].
         height_m: length of the cylinder along y [m].
     """
+
+    convex = True
 
     def __init__(self, radius_m: float, height_m: float) -> None:
         self.radius_m = _positive_size(radius_m, "cylinder radius")
@@ -278,6 +295,9 @@ class CylinderProbe(ProbeShape):
         radial = np.column_stack([np.where(on_axis, 1.0, p[:, 0] / safe), p[:, 2] / safe])
         half = 0.5 * self.height_m
         return _extruded_offset_sdf(rho - self.radius_m, radial, p[:, 1] + half, half, 0.0)
+
+    def compiled_distance(self) -> tuple[int, NDArray[np.float64]]:
+        return CYLINDER, np.array([self.radius_m, 0.5 * self.height_m])
 
     def surface(self) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         if self._surface is None:

@@ -44,10 +44,20 @@ class ProbeShape(abc.ABC):
         name: short human-readable description, e.g. ``"sphere:0.01"``.
         bounding_radius_m: radius [m] of a ball about the probe origin that holds the
             whole shape (a cheap broad-phase test for contact strategies).
+        convex: whether the solid is convex.
+        edge_radius_m: the smallest radius of its rounded edges [m] (0: sharp).
     """
 
     name: str
     bounding_radius_m: float
+    #: Whether the solid is convex (its signed distance is then a convex function): surface
+    #: depth measurement (:mod:`tissue.probe.surface_depth`) relies on it to skip facets and
+    #: to find each facet's deepest point. False unless a shape knows better.
+    convex: bool = False
+    #: The smallest radius [m] of the solid's rounded edges and corners (0: a sharp one):
+    #: how closely a skin kept out of it at its vertices can follow it
+    #: (:func:`tissue.probe.surface_depth.facet_allowance_m`). 0 unless a shape knows better.
+    edge_radius_m: float = 0.0
 
     @abc.abstractmethod
     def signed_distance(
@@ -85,6 +95,12 @@ class ProbeShape(abc.ABC):
             _, behind = self.signed_distance(points - offset)
             hessian[:, :, axis] = (ahead - behind) / (2.0 * _HESSIAN_STEP_M)
         return 0.5 * (hessian + hessian.transpose(0, 2, 1))
+
+    def compiled_distance(self) -> tuple[int, NDArray[np.float64]] | None:
+        """The shape as :mod:`tissue.probe.surface_depth`'s compiled kernels take it: a
+        kind and its parameters, or None (the default) for a shape they do not know, which
+        is then measured through :meth:`signed_distance`."""
+        return None
 
     def local_bounds_m(self) -> NDArray[np.float64]:
         """An axis-aligned box in the probe frame that holds the whole shape [m], shape

@@ -20,8 +20,13 @@ from tissue.errors import ConfigError
 from tissue.mesh import TetMesh
 from tissue.mesh.phantom.cache import mesh_cache_dir
 from tissue.mesh.phantom.calibration import calibrate_size
-from tissue.mesh.phantom.meshing import _mesh_phantom_volume, phantom_collision_surface
+from tissue.mesh.phantom.meshing import (
+    _mesh_phantom_volume,
+    phantom_collision_surface,
+    phantom_skin_at,
+)
 from tissue.mesh.phantom.spec import PhantomSpec
+from tissue.mesh.skin import check_collision_edge, with_collision_edge
 
 #: Bump when anything that changes generated meshes changes (geometry, options, calibration).
 GENERATOR_VERSION = 1
@@ -71,6 +76,7 @@ def breast_phantom(
     spec: PhantomSpec | None = None,
     cache_dir: str | Path | None = None,
     *,
+    collision_edge_m: float | None = None,
     verbose: bool = False,
 ) -> TetMesh:
     """The breast phantom meshed at one level of the ladder, from the cache or generated.
@@ -79,6 +85,9 @@ def breast_phantom(
         level: one of :data:`PHANTOM_LEVELS` (tet count), as int or string.
         spec: the phantom's shape and lesions; default :class:`PhantomSpec()`.
         cache_dir: cache directory; default :func:`mesh_cache_dir`.
+        collision_edge_m: the skin's edge length [m]: the dome meshed again by gmsh at it
+            (:mod:`tissue.mesh.skin`), cached beside the level; None (default): the
+            surface of about 1,000 triangles of the paper.
         verbose: let gmsh print its log.
 
     Returns:
@@ -86,7 +95,8 @@ def breast_phantom(
         k lesion k), base nodes fixed, collision surface, lesion landmarks, metadata.
 
     Raises:
-        ConfigError: unknown level or invalid spec.
+        ConfigError: unknown level, invalid spec, or a collision edge outside the level's
+            range (:func:`tissue.mesh.skin.check_collision_edge`).
         MeshError: gmsh cannot hit the level's count within 10 % for this spec.
     """
     level = parse_level(level)
@@ -97,8 +107,17 @@ def breast_phantom(
     # Via the package at call time, so patching its cached_mesh/_generate_phantom takes effect.
     from tissue.mesh import phantom
 
-    return phantom.cached_mesh(
+    mesh = phantom.cached_mesh(
         mesh_cache_dir(cache_dir) / key, lambda: phantom._generate_phantom(level, spec, verbose)
+    )
+    if collision_edge_m is None:
+        return mesh
+    edge_m = float(collision_edge_m)
+    check_collision_edge(mesh, edge_m)
+    skin_key = key.replace(".npz", f"-skin{round(edge_m * 1e6)}um.npz")
+    return phantom.cached_mesh(
+        mesh_cache_dir(cache_dir) / skin_key,
+        lambda: with_collision_edge(mesh, edge_m, lambda e: phantom_skin_at(spec, e, verbose)),
     )
 
 

@@ -133,6 +133,58 @@ def phantom_collision_surface(
     return vertices, _orient_outward(spec, vertices, triangles)
 
 
+#: The phantom's base, which the probe never reaches, is meshed this coarse [m] under a
+#: finer skin (:func:`phantom_skin_at`), grading from the skin's edge at the rim over
+#: :data:`_BASE_GRADING_M`.
+_BASE_EDGE_M = _CALIBRATED_COLLISION_SIZE_M
+_BASE_GRADING_M = 0.02
+
+
+def phantom_skin_at(
+    spec: PhantomSpec, edge_m: float, verbose: bool = False
+) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """The phantom's closed outer surface meshed by gmsh with its dome's edges about
+    ``edge_m`` [m] long (a collision surface at the probe's scale; see
+    :mod:`tissue.mesh.skin`). The base, never touched, keeps the coarse size of the
+    default surface away from the rim.
+
+    Returns:
+        vertices [m], shape (vertex_count, 3), and triangles, shape (triangle_count, 3),
+        counter-clockwise seen from outside.
+    """
+    edge_m = float(edge_m)
+    coarse = max(edge_m, _BASE_EDGE_M)
+    with gmsh_session(verbose) as gmsh:
+        _add_dome(gmsh.model.occ, spec)
+        gmsh.model.occ.synchronize()
+        surfaces = [tag for _, tag in gmsh.model.getEntities(2)]
+        base = [tag for tag in surfaces if gmsh.model.getType(2, tag) == "Plane"]
+        dome = [tag for tag in surfaces if tag not in base]
+        rim = [tag for _, tag in gmsh.model.getBoundary([(2, t) for t in base], oriented=False)]
+        field = gmsh.model.mesh.field
+        on_dome = field.add("Constant")
+        field.setNumber(on_dome, "VIn", edge_m)
+        field.setNumber(on_dome, "VOut", coarse)
+        field.setNumbers(on_dome, "SurfacesList", dome)
+        field.setNumbers(on_dome, "CurvesList", rim)
+        from_rim = field.add("Distance")
+        field.setNumbers(from_rim, "CurvesList", rim)
+        graded = field.add("Threshold")
+        field.setNumber(graded, "InField", from_rim)
+        field.setNumber(graded, "SizeMin", edge_m)
+        field.setNumber(graded, "SizeMax", coarse)
+        field.setNumber(graded, "DistMin", 0.0)
+        field.setNumber(graded, "DistMax", _BASE_GRADING_M)
+        smallest = field.add("Min")
+        field.setNumbers(smallest, "FieldsList", [on_dome, graded])
+        field.setAsBackgroundMesh(smallest)
+        gmsh.option.setNumber("Mesh.MeshSizeMax", coarse)
+        gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+        gmsh.model.mesh.generate(2)
+        vertices, triangles = extract_surface_mesh(gmsh)
+    return vertices, _orient_outward(spec, vertices, triangles)
+
+
 def _orient_outward(
     spec: PhantomSpec, vertices: NDArray[np.float64], triangles: NDArray[np.int64]
 ) -> NDArray[np.int64]:
