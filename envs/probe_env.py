@@ -8,7 +8,10 @@ reward term declares the simulated effects it needs (:data:`envs.effects.EFFECTS
 
 Keyword arguments common to every task (unknown ones are errors that list the valid ones):
 ``contact`` (penalty | lm | prescribed | pbd), ``profile`` (paper | robust), ``mesh`` (a
-phantom level or a mesh file, see ``tissue.TissueSpec``), ``young_pa``, ``poisson``,
+phantom level or a mesh file, see ``tissue.TissueSpec``), ``collision_edge_m`` (the skin's
+resolution: its collision surface's edge [m], :data:`COLLISION_EDGE_M` by default, finer than
+the probe's 13.2 mm face; None for the mesh's own surface, the paper's 1,004 triangles on
+the phantom), ``young_pa``, ``poisson``,
 ``lesion_stiffness_ratio``, ``control_mode`` (cartesian_impedance | joint_delta),
 ``stiffness_n_per_m`` (the probe impedance's translational stiffness), ``render_mode``
 (rgb_array | human), ``camera_name`` (overview | probe_side), ``width``, ``height``,
@@ -74,6 +77,12 @@ PHANTOM_TARGET_LESIONS = (1, 4, 6, 7, 10)
 #: :mod:`tissue.contact.sleep`): a step with the probe clear of a resting breast costs no
 #: tissue work; the observation is the same as a full step's.
 TISSUE_SLEEP_SPEED_M_S: float | None = tissue.SLEEP_SPEED_M_S
+#: The skin's resolution in the environments [m]: the collision surface's edge length
+#: (:attr:`tissue.TissueSpec.collision_edge_m`). The probe's 13.2 mm face spans six or seven
+#: vertices, and a facet kept out of the probe at its vertices can cut its 1.35 mm rounded
+#: edge by 0.65 mm at most (:func:`tissue.probe.surface_depth.facet_allowance_m`). Chosen by
+#: measurement: docs/contact.md, "The skin's resolution".
+COLLISION_EDGE_M = 0.002
 #: Limits of a wrench observation [N, N m] and a joint velocity [rad/s] (the spaces' bounds).
 WRENCH_LIMIT = 200.0
 JOINT_VELOCITY_LIMIT = 20.0
@@ -99,9 +108,10 @@ class ActionConfig:
 
 #: ``ProbeEnv``'s own keyword arguments (the configs' fields are the others).
 _COMMON_ARGUMENTS = (
-    "contact", "profile", "mesh", "young_pa", "poisson", "lesion_stiffness_ratio",
-    "control_mode", "render_mode", "camera_name", "width", "height", "robot", "flange_site",
-    "robot_base_m", "robot_dt", "scene", "effects", "image", "domain_randomization",
+    "contact", "profile", "mesh", "collision_edge_m", "young_pa", "poisson",
+    "lesion_stiffness_ratio", "control_mode", "render_mode", "camera_name", "width", "height",
+    "robot", "flange_site", "robot_base_m", "robot_dt", "scene", "effects", "image",
+    "domain_randomization",
 )  # fmt: skip
 
 
@@ -133,6 +143,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         contact: str = "lm",
         profile: str = "robust",
         mesh: int | str = 1363,
+        collision_edge_m: float | None = COLLISION_EDGE_M,
         young_pa: float | None = None,
         poisson: float | None = None,
         lesion_stiffness_ratio: float | None = None,
@@ -177,6 +188,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
             mesh=mesh,
             contact=contact,
             profile=profile,
+            collision_edge_m=collision_edge_m,
             sleep_speed_m_s=TISSUE_SLEEP_SPEED_M_S,
             young_pa=young_pa,
             poisson=poisson,

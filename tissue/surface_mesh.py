@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from tissue.contact.base import SurfacePoints
+from tissue.contact.surface_points import SurfacePoints
 from tissue.lesions import LesionTracker
 from tissue.mesh import TetMesh, boundary_faces
 

@@ -29,8 +29,8 @@ from numpy.typing import NDArray
 
 from agents.compress import Waypoint, plan_scene, straight_path
 from agents.study.spec import NATIVE_LEVEL
-from tissue.contact.base import contact_surface
 from tissue.contact.placement import first_contact_pose, radial_roll_rad, skin_normal_above
+from tissue.contact.surface_points import contact_surface
 from tissue.errors import ConfigError
 from tissue.mesh import TetMesh, boundary_faces, triangle_grid
 from tissue.mesh.paper_scene import spring_nodes_to_volume

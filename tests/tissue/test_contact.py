@@ -434,8 +434,8 @@ def test_robust_lagrange_never_steps_past_an_inversion(
 def test_robust_contact_moves_to_a_much_finer_volume_boundary() -> None:
     """A collision surface far coarser than the volume's boundary serves paper mode; robust
     mode acts on the boundary nodes instead (the cure for fine_105k's inversions)."""
-    from tissue.contact.base import boundary_surface
     from tissue.contact.fe_model import FINE_BOUNDARY_RATIO
+    from tissue.contact.surface_points import boundary_surface
     from tissue.mesh import boundary_faces
 
     fine = block_mesh((SIZE, SIZE, SIZE / 2), (12, 12, 6), origin_m=(-SIZE / 2, -SIZE / 2, 0.0))
@@ -922,7 +922,7 @@ def test_penalty_springs_follow_eq_6_and_the_default_stiffness(block) -> None:
     """Eq. (6) directly: a flat face 0.1 mm into the block's top holds each of the 3 x 3 top
     nodes under it with k_s delta, k_s the documented default 50 x E x the surface's mean
     edge; the energy is sum k_s delta^2 / 2 and the stiffness k_s n n^T per node."""
-    from tissue.contact.base import contact_surface
+    from tissue.contact.surface_points import contact_surface
 
     shape = BoxProbe((0.012, 0.004, 0.012))
     model = _model("penalty", block, shape, mode="paper")

@@ -98,7 +98,7 @@ def test_the_toy_presses_stiffer_than_penalty_through_the_front_door(toy: str) -
         for k in range(1, 26):
             step = t.step(position + 0.0004 * k * tissue.pressing_direction(quat), quat)
             assert step.status is tissue.StepStatus.OK, (method, k, step.status)
-        deepest[method] = step.skin_penetration_m
+        deepest[method] = step.diagnostics.details["skin_vertex_penetration_m"]
         assert step.force_world_n @ tissue.pressing_direction(quat) < -0.1
     assert 0.0 < deepest[toy] < 0.6 * deepest["penalty"]
 

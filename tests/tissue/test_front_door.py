@@ -17,6 +17,7 @@ import pytest
 
 import tissue
 from tissue.probe import Probe, matrix_to_quat, quat_to_matrix
+from tissue.probe.surface_depth import facet_allowance_m
 
 ROOT = Path(__file__).resolve().parents[2]
 METHODS = ("lm", "penalty", "prescribed", "pbd")
@@ -29,6 +30,22 @@ def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
     axis = axis / np.linalg.norm(axis)
     k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
     return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def _sampled_skin_depth(probe: Probe, skin: tissue.SurfaceMesh) -> tuple[float, float]:
+    """The deepest of a fine grid of points on the skin's triangles inside the probe [m],
+    and how much deeper a point between them can lie (a grid cell's circumradius) [m]."""
+    order = 24
+    grid = np.array(
+        [(i / order, j / order, 1 - (i + j) / order) for i in range(order + 1)
+         for j in range(order + 1 - i)]
+    )  # fmt: skip
+    corners = skin.vertices_m[skin.triangles[skin.triangle_region == 0]]
+    near = probe.near(corners.reshape(-1, 3), 0.02).reshape(-1, 3).any(axis=1)
+    samples = np.einsum("sk,tkd->tsd", grid, corners[near]).reshape(-1, 3)
+    distance, _ = probe.signed_distance_world(samples)
+    longest = float(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max())
+    return max(0.0, -float(distance.min())), longest / order / np.sqrt(3.0)
 
 
 def _scenario(t: tissue.Tissue) -> dict[str, object]:
@@ -87,15 +104,19 @@ def _check_scenario(runs, level: int, method: str, profile: str) -> None:
     assert np.all(np.isfinite(t.positions_m))
     penetration = np.array([step.skin_penetration_m for step in steps])
     assert np.all(np.isfinite(penetration)) and penetration.min() >= 0.0
-    # The reported penetration is the skin's, measured independently here at the end.
+    # The reported penetration is the skin's surface, measured independently here at the
+    # end: its triangles sampled on a fine grid. The grid finds no more than the report, and
+    # the report no more than the grid plus its cell's reach (the distance is 1-Lipschitz).
     skin = t.surface()
-    on_skin = skin.vertices_m[skin.vertex_region == 0]
     held = Probe(t.probe_shape)
     held.set_pose(*run["poses"][-1])
-    distance, _ = held.signed_distance_world(on_skin)
-    assert steps[-1].skin_penetration_m == pytest.approx(max(0.0, -distance.min()), abs=1e-12)
+    sampled, cell = _sampled_skin_depth(held, skin)
+    reported = steps[-1].skin_penetration_m
+    assert sampled - 1e-9 <= reported <= sampled + cell
+    # What the method holds: the skin's vertices (its bound) ...
+    vertices = np.array([step.diagnostics.details["skin_vertex_penetration_m"] for step in steps])
     if method == "lm" or (method == "prescribed" and profile == "robust"):
-        assert penetration.max() <= 0.5e-3
+        assert vertices.max() <= 0.5e-3
     elif method == "penalty":
         # Penalty's documented bound: robust augments to its tolerance (0.1 mm); paper
         # springs sink by their force over k_s.
@@ -108,9 +129,16 @@ def _check_scenario(runs, level: int, method: str, profile: str) -> None:
                 for step in steps
             )
             bound = largest / model.stiffness_n_per_m + 1e-6
-        assert penetration.max() <= bound
+        assert vertices.max() <= bound
     elif method == "pbd" and profile == "robust":
-        assert penetration.max() <= 1e-3
+        assert vertices.max() <= 1e-3
+    # ... and between them the facets, no deeper than a facet of the skin's size can reach
+    # with its vertices where they are.
+    on_skin = skin.triangles[skin.triangle_region == 0]
+    corners = skin.vertices_m[on_skin]
+    longest = float(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max())
+    allowance = facet_allowance_m(longest, t.probe_shape.edge_radius_m)
+    assert np.all(penetration <= vertices + allowance + 1e-9)
     if profile == "robust" and method != "lm":
         # Within 20 % of LM's force (PBD, calibrated for the mesh on another press: 15 %).
         share = 0.15 if method == "pbd" else 0.2
@@ -210,7 +238,11 @@ def test_a_30_mm_teleport_never_ends_ok_with_the_skin_behind_the_probe(
             # its nodes: the penetration is reported, and stays short of the mid-plane.
             assert jumped.skin_penetration_m < t.contact_model.max_sub_motion_m
         else:
-            assert jumped.skin_penetration_m <= max(pressed.skin_penetration_m, 0.5e-3) + 1e-4
+            # The skin's vertices held out as in the slow press (its facets, at the paper's
+            # 10-18 mm, cut the probe's rim between them in both).
+            held = jumped.diagnostics.details["skin_vertex_penetration_m"]
+            slowly = pressed.diagnostics.details["skin_vertex_penetration_m"]
+            assert held <= max(slowly, 0.5e-3) + 1e-4
 
 
 def test_the_probe_frame_is_documented_and_used():

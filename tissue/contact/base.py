@@ -20,10 +20,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tissue.contact.sleep import FreeAirSleep, RestPoints
+from tissue.contact.surface_points import boundary_surface, contact_surface
 from tissue.contact.tunnelling import face_samples, skin_behind_probe
 from tissue.errors import TissueInputError
-from tissue.mesh import TetMesh, boundary_faces
-from tissue.mesh.embedding import BarycentricEmbedding
+from tissue.mesh import TetMesh
 from tissue.probe import Probe, ProbeShape
 from tissue.probe.surface_depth import SurfaceDepth, surface_depth
 from tissue.sim.simulator import SimulationConfig
@@ -68,52 +68,6 @@ class ContactResult:
     @property
     def contact_count(self) -> int:
         return int(self.contact_points.shape[0])
-
-
-@dataclass(frozen=True)
-class SurfacePoints:
-    """The tissue points contact acts on: collision-surface vertices embedded in the volume.
-
-    Attributes:
-        embedding: barycentric map from volume nodes to the points.
-        triangles: the surface's triangles over the points (outward), (t, 3).
-    """
-
-    embedding: BarycentricEmbedding
-    triangles: NDArray[np.int64]
-
-    @property
-    def count(self) -> int:
-        return int(self.embedding.weights.shape[0])
-
-    def positions(self, node_positions: NDArray[np.float64]) -> NDArray[np.float64]:
-        return self.embedding.interpolate(node_positions)
-
-
-def contact_surface(mesh: TetMesh) -> SurfacePoints:
-    """The mesh's collision surface, or its boundary faces (identity embedding) if it has none."""
-    if mesh.collision_surface is not None:
-        surface = mesh.collision_surface
-        return SurfacePoints(surface.embedding, surface.triangles)
-    return boundary_surface(mesh)
-
-
-def boundary_surface(mesh: TetMesh) -> SurfacePoints:
-    """The volume's boundary faces as contact points (each node embedded with weight 1)."""
-    faces = boundary_faces(mesh.tets)
-    vertices = np.unique(faces)
-    # Each boundary node is "embedded" in one tet that contains it, with weight 1 on itself.
-    owner = np.full(mesh.node_count, -1, dtype=np.int64)
-    corner = np.zeros(mesh.node_count, dtype=np.int64)
-    for local in range(4):
-        owner[mesh.tets[:, local]] = np.arange(mesh.tet_count)
-        corner[mesh.tets[:, local]] = local
-    tet_nodes = mesh.tets[owner[vertices]]
-    weights = np.zeros((vertices.size, 4))
-    weights[np.arange(vertices.size), corner[vertices]] = 1.0
-    remap = np.full(mesh.node_count, -1, dtype=np.int64)
-    remap[vertices] = np.arange(vertices.size)
-    return SurfacePoints(BarycentricEmbedding(tet_nodes, weights), remap[faces])
 
 
 #: A probe pressed back harder than this [N] has not passed through the tissue, whatever its
@@ -536,9 +490,16 @@ class ContactModel(FreeAirSleep, abc.ABC):
         """
         return self.surface.positions(self.node_positions)
 
+    def contact_points_near(self) -> NDArray[np.float64]:
+        """Those of :meth:`contact_points_world` [m] (k, 3) that may lie inside the probe
+        (within its local bounding box); a method that overrides
+        :meth:`contact_points_world` overrides this too."""
+        _, positions = self.surface.near(self.node_positions, self.probe, 0.0)
+        return positions
+
     def penetration_max_m(self) -> float:
         """Deepest of :meth:`contact_points_world` inside the probe now [m] (0 if none)."""
-        return self.probe.deepest_inside_m(self.contact_points_world())
+        return self.probe.deepest_inside_m(self.contact_points_near())
 
     def skin_penetration_m(self) -> float:
         """How far the skin lies inside the probe now [m] (>= 0): the deepest point of the

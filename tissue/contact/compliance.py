@@ -12,7 +12,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from tissue.contact.base import SurfacePoints
+from tissue.contact.surface_points import SurfacePoints
 from tissue.sim.solvers import Factorization
 
 # A point's entries of the kept compliance W~ are recomputed once its contact normal has

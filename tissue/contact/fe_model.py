@@ -10,7 +10,8 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from tissue.contact.base import ContactModel, SurfacePoints, boundary_surface, contact_surface
+from tissue.contact.base import ContactModel
+from tissue.contact.surface_points import SurfacePoints, boundary_surface, contact_surface
 from tissue.contact.wrench_stiffness import ContactConstraints
 from tissue.errors import ConfigError
 from tissue.fem.material import TissueMaterials
@@ -109,17 +110,16 @@ def detect_contacts(
     the signed distance is evaluated: the probe touches a small part of the skin.
     ``movable`` (point_count,) bool, if given: only those points (:func:`movable_points`).
     """
-    positions = surface.positions(node_positions)
-    nearby = probe.near(positions, alarm_distance_m)
+    near, positions = surface.near(node_positions, probe, alarm_distance_m)
     if movable is not None:
-        nearby = nearby & movable
-    near = np.flatnonzero(nearby)
+        chosen = movable[near]
+        near, positions = near[chosen], positions[chosen]
     if near.size == 0:
         empty = np.zeros((0, 3))
         return Contacts(near, empty, np.zeros(0), empty)
-    distance, normal = probe.signed_distance_world(positions[near])
+    distance, normal = probe.signed_distance_world(positions)
     keep = distance < alarm_distance_m
-    return Contacts(near[keep], positions[near[keep]], distance[keep], normal[keep])
+    return Contacts(near[keep], positions[keep], distance[keep], normal[keep])
 
 
 def constraint_rows(
@@ -310,7 +310,7 @@ class FEContactModel(ContactModel):
         compliance_m_per_n: float,
     ) -> ContactConstraints:
         """Constraints at surface ``points`` (indices) along ``directions`` (k, 3)."""
-        positions = surface.positions(self.sim.positions)[points]
+        positions = surface.positions_of(self.sim.positions, points)
         contacts = Contacts(points, positions, np.zeros(points.size), directions)
         constrained = np.zeros(self.mesh.dof_count, dtype=bool)
         constrained[node_dofs(self.mesh.fixed_nodes)] = True

@@ -45,9 +45,9 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from tissue.contact.base import SurfacePoints
 from tissue.contact.fe_model import FEContactModel, detect_contacts
 from tissue.contact.registry import register_contact
+from tissue.contact.surface_points import SurfacePoints
 from tissue.contact.wrench_stiffness import ContactConstraints
 from tissue.errors import ConfigError
 from tissue.fem.material import TissueMaterials

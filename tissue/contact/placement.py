@@ -6,13 +6,16 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-from tissue.contact.base import SurfacePoints, contact_surface
+from tissue.contact.surface_points import SurfacePoints, contact_surface
 from tissue.errors import TissueInputError
 from tissue.mesh import TetMesh
 from tissue.probe import Probe, ProbeShape
 
 # Iterations of the first-contact search; each removes the overlap found at the last pose.
 _CONTACT_SEARCH_ITERATIONS = 8
+# The first-contact search looks first at the skin points this close to the probe's box at
+# the ray's hit [m] (a fine skin has thousands; those far from the probe cannot touch it).
+_SEARCH_MARGIN_M = 0.03
 # Skin triangles within this distance of a skin point give its normal [m].
 _NORMAL_RADIUS_M = 0.008
 
@@ -25,10 +28,20 @@ def ray_surface_hit(
 ) -> NDArray[np.float64] | None:
     """First point where the ray origin + t direction (t > 0) meets the triangles, or None.
 
-    Möller & Trumbore (1997) ray-triangle intersection, vectorised over the triangles.
+    Möller & Trumbore (1997) ray-triangle intersection, in one compiled pass over the
+    triangles.
     """
-    a, b, c = (vertices[triangles[:, i]] for i in range(3))
-    return _first_hit(a, b - a, c - a, origin, direction)
+    direction = np.ascontiguousarray(direction / np.linalg.norm(direction), dtype=np.float64)
+    origin = np.ascontiguousarray(origin, dtype=np.float64)
+    t = _nearest_hit_indexed(
+        np.ascontiguousarray(vertices, dtype=np.float64),
+        np.ascontiguousarray(triangles, dtype=np.int64),
+        origin,
+        direction,
+    )
+    if not np.isfinite(t):
+        return None
+    return origin + t * direction
 
 
 def _first_hit(
@@ -48,6 +61,23 @@ def _first_hit(
     if not np.isfinite(t):
         return None
     return origin + t * direction
+
+
+@nb.njit(cache=True)
+def _nearest_hit_indexed(vertices, triangles, origin, direction):  # pragma: no cover
+    """:func:`_nearest_hit_distance` over ``triangles`` (t, 3) of ``vertices`` (v, 3)."""
+    best = np.inf
+    corner = np.empty((1, 3))
+    edge1 = np.empty((1, 3))
+    edge2 = np.empty((1, 3))
+    for k in range(triangles.shape[0]):
+        a, b, c = triangles[k, 0], triangles[k, 1], triangles[k, 2]
+        for axis in range(3):
+            corner[0, axis] = vertices[a, axis]
+            edge1[0, axis] = vertices[b, axis] - vertices[a, axis]
+            edge2[0, axis] = vertices[c, axis] - vertices[a, axis]
+        best = min(best, _nearest_hit_distance(corner, edge1, edge2, origin, direction))
+    return best
 
 
 @nb.njit(cache=True)
@@ -107,7 +137,7 @@ def first_contact_pose(
         raise TissueInputError(f"the pressing direction must be a non-zero vector; got {direction}")
     direction = direction / norm
     vertices = surface.positions(node_positions)
-    extent = float(np.max(np.ptp(vertices, axis=0)))
+    extent = float(np.max(np.ptp(node_positions, axis=0)))
     origin = np.asarray(target_point, dtype=np.float64) - 2.0 * extent * direction
     hit = ray_surface_hit(vertices, surface.triangles, origin, direction)
     if hit is None:
@@ -118,13 +148,25 @@ def first_contact_pose(
         )
     probe = Probe.looking_along(shape, hit, direction, roll_rad=roll_rad)
     position = probe.position_world.copy()
-    for _ in range(_CONTACT_SEARCH_ITERATIONS):
+    # The search moves the probe along its axis by the overlap each time: the skin points
+    # that can set it lie near the probe's box at the hit. The others are checked at the
+    # end, and the search goes on over all points should one of them be closest.
+    candidates = vertices[probe.near(vertices, _SEARCH_MARGIN_M)]
+    for points in (candidates, vertices):
+        if points.shape[0] == 0:
+            continue
+        for _ in range(_CONTACT_SEARCH_ITERATIONS):
+            probe.set_pose(position, probe.quat_wxyz)
+            distance, _ = probe.signed_distance_world(points)
+            closest = float(distance.min())
+            if abs(closest) < 1e-9:
+                break
+            position = position + closest * direction  # back off by the overlap, or close
         probe.set_pose(position, probe.quat_wxyz)
-        distance, _ = probe.signed_distance_world(vertices)
-        closest = float(distance.min())
-        if abs(closest) < 1e-9:
-            break
-        position = position + closest * direction  # back off by the overlap, or close the gap
+        if points is not vertices:
+            distance, _ = probe.signed_distance_world(vertices)
+            if abs(float(distance.min())) < 1e-9:
+                break
     return position, probe.quat_wxyz.copy()
 
 

@@ -198,6 +198,9 @@ class PrescribedContact(FEContactModel):
         """The free boundary nodes [m], (k, 3): the points the method moves with the probe."""
         return self.sim.positions[self.boundary_nodes]
 
+    def contact_points_near(self) -> NDArray[np.float64]:
+        return self.contact_points_world()
+
     @property
     def contact_nodes(self) -> NDArray[np.int64]:
         """The nodes currently moved with the probe."""

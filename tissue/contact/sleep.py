@@ -19,7 +19,7 @@ from tissue.contact.sleep_kernel import blocked_points, clear_of_probe, rotation
 from tissue.errors import ConfigError
 
 if TYPE_CHECKING:
-    from tissue.contact.base import SurfacePoints
+    from tissue.contact.surface_points import SurfacePoints
     from tissue.probe import Probe
 
 #: How much farther than a method's own reach (:meth:`ContactModel.sleep_reach_m`) the skin

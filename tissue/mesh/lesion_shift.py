@@ -19,11 +19,14 @@ limit is small: a lesion 2 mm under the skin cannot move 3 mm towards it.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tissue.errors import MeshError
-from tissue.mesh.core import TetMesh, boundary_faces, signed_tet_volumes
+from tissue.mesh.core import CollisionSurface, TetMesh, boundary_faces, signed_tet_volumes
+from tissue.mesh.embedding import BarycentricEmbedding, embed_points
 
 #: The smallest ratio of a tet's volume after a shift to before that :func:`shift_lesions`
 #: accepts (a quality floor well away from inversion).
@@ -172,9 +175,36 @@ def lesion_shift_limits(mesh: TetMesh) -> NDArray[np.float64]:
     return limits
 
 
+def _with_skin_kept(
+    moved: TetMesh,
+    surface: CollisionSurface,
+    old_nodes: NDArray[np.float64],
+    nodes: NDArray[np.float64],
+) -> TetMesh:
+    """``moved`` with ``surface`` embedded at the same rest positions: the points whose tet
+    has a moved node embedded again, the others keeping their tet and weights (their tet is
+    where it was, and the lesions' blends move interior nodes only, so the skin's other tets
+    are too). A skin at the probe's scale has thousands of points, few of them over a moved
+    node: this keeps a randomised reset's cost off the skin."""
+    changed = np.any(nodes != old_nodes, axis=1)
+    redo = np.flatnonzero(np.any(changed[surface.embedding.tet_nodes], axis=1))
+    tet_nodes = surface.embedding.tet_nodes.copy()
+    weights = surface.embedding.weights.copy()
+    if redo.size:
+        fresh = embed_points(nodes, moved.tets, surface.rest_vertices[redo])
+        tet_nodes[redo] = fresh.tet_nodes
+        weights[redo] = fresh.weights
+    kept = CollisionSurface(
+        rest_vertices=surface.rest_vertices,
+        triangles=surface.triangles,
+        embedding=BarycentricEmbedding(tet_nodes, weights),
+    )
+    return replace(moved, collision_surface=kept)
+
+
 def _with_nodes(mesh: TetMesh, nodes: NDArray[np.float64]) -> TetMesh:
-    """``mesh`` with other rest node positions: the skin re-embedded where it was, the tracked
-    points carried by their barycentric embedding."""
+    """``mesh`` with other rest node positions: the skin embedded where it was
+    (:func:`_with_skin_kept`), the tracked points carried by their barycentric embedding."""
     moved = TetMesh(
         nodes=nodes,
         tets=mesh.tets,
@@ -185,8 +215,7 @@ def _with_nodes(mesh: TetMesh, nodes: NDArray[np.float64]) -> TetMesh:
         metadata=dict(mesh.metadata),
     )
     if mesh.collision_surface is not None:
-        surface = mesh.collision_surface
-        moved = moved.with_collision_surface(surface.rest_vertices, surface.triangles)
+        moved = _with_skin_kept(moved, mesh.collision_surface, mesh.nodes, nodes)
     if mesh.landmarks is not None:
         points = mesh.landmarks.embedding.interpolate(nodes)
         moved = moved.with_landmarks(mesh.landmarks.names, points)

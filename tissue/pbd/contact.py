@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from tissue.contact.base import SurfacePoints
+from tissue.contact.surface_points import SurfacePoints
 from tissue.mesh import TetMesh, boundary_faces, triangle_grid
 from tissue.pbd.sweep import project_tets
 

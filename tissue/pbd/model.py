@@ -311,6 +311,9 @@ class PBDContact(ContactModel):
         """The points PBD contact acts on [m], (k, 3) (see :func:`_contact_points`)."""
         return np.einsum("kj,kjd->kd", self._arrays.point_weights, self._x[self._point_nodes])
 
+    def contact_points_near(self) -> NDArray[np.float64]:
+        return self.contact_points_world()
+
     @property
     def node_positions(self) -> NDArray[np.float64]:
         """Current node positions [m], (node_count, 3) (a read-only view)."""

@@ -113,6 +113,13 @@ class Probe:
         self.quat_wxyz = quat_wxyz
         self._rotation = rotation
 
+    def local_bounds_m(self) -> NDArray[np.float64]:
+        """The shape's local bounding box [m], (2, 3), probe frame
+        (:meth:`ProbeShape.local_bounds_m`), kept: read it, never write it."""
+        if self._bounds is None:
+            self._bounds = self.shape.local_bounds_m()
+        return self._bounds
+
     def rotation_world(self) -> NDArray[np.float64]:
         """Rotation from the probe frame to the world, shape (3, 3) (columns: probe axes)."""
         return self._rotation.copy()

@@ -83,7 +83,7 @@ class LagrangeState(FEContactModel):
     def contact_constraints(self) -> ContactConstraints:
         """The contacts pressing at the end of the last step, exact (zero compliance)."""
         active = np.flatnonzero(self._warm > 0.0)
-        positions = self.surface.positions(self.sim.positions)[active]
+        positions = self.surface.positions_of(self.sim.positions, active)
         _, normal = self.probe.signed_distance_world(positions)
         return self._constraint_rows(self.surface, active, normal, 0.0)
 
@@ -214,7 +214,7 @@ class LagrangeState(FEContactModel):
         """Keep the forces for the next warm start; contact points and forces on the probe."""
         self._warm[:] = 0.0
         self._warm[contacts.points] = forces
-        positions = self.surface.positions(self.sim.positions)[contacts.points]
+        positions = self.surface.positions_of(self.sim.positions, contacts.points)
         active = forces > 0.0
         if not np.any(active):
             return np.zeros((0, 3)), np.zeros((0, 3))
