@@ -8,6 +8,7 @@ and a message naming the bad value when they are wrong.
 from __future__ import annotations
 
 import argparse
+import math
 import shlex
 import sys
 from collections.abc import Callable, Sequence
@@ -66,6 +67,52 @@ def _methods_and_profiles(
     if not chosen:
         parser.error("--profile needs one or more of paper,robust; got nothing")
     return _names(methods, contact_method), chosen
+
+
+_SKIN_HELP = (
+    "comma-separated skin resolutions: collision edges in mm, or 'paper' for the phantom's "
+    "own 1,004 triangles; default {default}"
+)
+
+
+def _skins(value: str) -> list[float | None]:
+    """``--skin``: collision edges in mm (to metres), ``paper`` for the mesh's own surface."""
+    chosen: list[float | None] = []
+    for item in (part.strip() for part in value.split(",")):
+        if item.lower() == "paper":
+            chosen.append(None)
+            continue
+        try:
+            edge_mm = float(item)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"a skin is an edge in mm or 'paper'; got {item!r}"
+            ) from None
+        if not (math.isfinite(edge_mm) and edge_mm > 0.0):
+            raise argparse.ArgumentTypeError(f"a skin's edge must be > 0 mm; got {item!r}")
+        chosen.append(edge_mm * 1e-3)
+    if not chosen:
+        raise argparse.ArgumentTypeError("--skin needs one or more resolutions; got nothing")
+    return chosen
+
+
+def _check_skins(
+    parser: argparse.ArgumentParser, skins: list[float | None] | None, levels: list[int]
+) -> None:
+    """Refuse, before any work, a skin resolution outside a level's range."""
+    from tissue.errors import ConfigError
+    from tissue.mesh.phantom import breast_phantom
+    from tissue.mesh.skin import check_collision_edge
+
+    for level in levels:
+        mesh = breast_phantom(level)
+        for edge in skins or ():
+            if edge is None:
+                continue
+            try:
+                check_collision_edge(mesh, edge)
+            except ConfigError as refused:
+                parser.error(f"--skin {edge * 1e3:g} at level {level}: {refused}")
 
 
 def _pair(value: str) -> tuple[float, float]:
@@ -210,6 +257,9 @@ def _build_parser() -> argparse.ArgumentParser:
     contact.add_argument(
         "--profile", "--modes", dest="modes", default="paper,robust", help="comma-separated"
     )
+    contact.add_argument(
+        "--skin", type=_skins, default=None, help=_SKIN_HELP.format(default="paper,2")
+    )
     contact.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
     env = bench_kinds.add_parser("env", help="environment steps per second, per method")
     env.add_argument("--ids", default=None, help="comma-separated env ids; default all")
@@ -220,6 +270,7 @@ def _build_parser() -> argparse.ArgumentParser:
         "--profile", "--profiles", dest="profiles", default="robust", help="comma-separated"
     )
     env.add_argument("--levels", type=_levels, default=None, help="default 1363,2539")
+    env.add_argument("--skin", type=_skins, default=None, help=_SKIN_HELP.format(default="2,paper"))
     env.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
     sweep = bench_kinds.add_parser("sweep", help="each method's force along a sweep, against LM")
     sweep.add_argument(
@@ -382,17 +433,29 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         run_tissue_benchmark(args.levels, args.repeats, args.json, command=args.command_line)
         return 0
     if args.command == "bench" and args.bench == "contact":
+        from agents.bench.contact import DEFAULT_LEVELS as CONTACT_LEVELS
         from agents.bench.contact import run_contact_benchmark
 
         methods, modes = _methods_and_profiles(parser, args.methods, args.modes)
-        run_contact_benchmark(args.levels, methods, modes, args.json, command=args.command_line)
+        _check_skins(parser, args.skin, list(args.levels or CONTACT_LEVELS))
+        run_contact_benchmark(
+            args.levels, methods, modes, args.json, command=args.command_line, skins=args.skin
+        )
         return 0
     if args.command == "bench" and args.bench == "env":
+        from agents.bench.env import DEFAULT_LEVELS as ENV_LEVELS
         from agents.bench.env import run_env_benchmark
 
         methods, profiles = _methods_and_profiles(parser, args.methods, args.profiles)
+        _check_skins(parser, args.skin, list(args.levels or ENV_LEVELS))
         run_env_benchmark(
-            _names(args.ids), methods, profiles, args.levels, args.json, command=args.command_line
+            _names(args.ids),
+            methods,
+            profiles,
+            args.levels,
+            args.json,
+            command=args.command_line,
+            skins=args.skin,
         )
         return 0
     if args.command == "bench" and args.bench == "effects":

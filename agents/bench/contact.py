@@ -18,14 +18,25 @@ Every strategy sees the same probe path. Per method, mode and level one record:
   whole run [m] (LM and prescribed keep it near zero by construction; penalty trades it
   against its stiffness);
 - ``force_n``: the normal (+z, the pressing axis) force on the probe at the final depth [N];
+- ``skin``: the skin's resolution (``paper``: the phantom's own 1,004 triangles, or the
+  collision surface's edge, ``2 mm``; ``--skin``), with ``collision_edge_m`` (None for the
+  paper's) and ``skin_vertices``;
+- ``skin_penetration_max_m``: the deepest point of the skin's facets inside the probe over
+  the run [m] (:meth:`tissue.ContactModel.skin_depth`), beside
+  ``skin_vertex_penetration_max_m``, its vertices' (what a method holding the vertices
+  keeps near zero: a coarse skin's facets cut the probe's rim between them);
+- ``force_largest_dip``: the largest fall of the normal force below its running maximum
+  over the press, as a fraction of that maximum (0 for a force that never falls: the
+  press's smoothness);
 - ``status_counts``: how many steps ended with each :class:`tissue.status.StepStatus`;
 - ``stopped_by_wall_budget``: the run was cut after :data:`RUN_WALL_BUDGET_S` of steps
   (its force and displacement are then at a shallower depth, ``depth_beyond_contact_m``);
 - ``lesion1_displacement_m``: how far lesion landmark 1 (under the apex) moved from rest
   at the final depth [m].
 
-Methods: ``penalty``, ``lm``, ``prescribed`` (always with ``online=True``: the node set
-follows the probe's footprint, as a user without a pre-computed node set would run it) and
+Methods: ``penalty``, ``lm``, ``prescribed`` (online: the node set follows the probe's
+footprint, as a user without a pre-computed node set would run it; in robust mode as the
+profile runs it, sliding with the skin guarded) and
 ``pbd`` (paper: 10 substeps; robust: 60, :meth:`tissue.pbd.PBDConfig.for_profile`).
 
 The speed targets, printed against the measurements: penalty and prescribed in paper mode
@@ -45,6 +56,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from agents.bench.report import BenchRecord, MarkdownTable
 from agents.bench.tissue import robust_step_target
@@ -60,6 +72,9 @@ from tissue.sim.simulator import SimulationConfig
 DEFAULT_LEVELS = tuple(level for level in PHANTOM_LEVELS if level <= 26220)
 DEFAULT_METHODS = ("penalty", "lm", "prescribed", "pbd")
 DEFAULT_MODES = ("paper", "robust")
+#: The skin resolutions compared by default: the paper's surface and the environments' skin
+#: at the probe's scale (:data:`envs.probe_env.COLLISION_EDGE_M`, 2 mm).
+DEFAULT_SKINS: tuple[float | None, ...] = (None, 0.002)
 # Probe advance per tissue step at the paper's speed and step [m].
 STEP_ADVANCE_M = PAPER_PROBE_SPEED_M_S * PAPER_TISSUE_DT_S
 # The probe starts this far above the apex [m], so that its first step already touches and
@@ -86,7 +101,28 @@ def _apex_probe(mesh: Any) -> Probe:
     return Probe.looking_along(linear_probe(), start, np.array([0.0, 0.0, -1.0]))
 
 
-def benchmark_one(method: str, mode: str, level: int, steps: int) -> dict[str, Any]:
+def skin_label(collision_edge_m: float | None) -> str:
+    """How tables name a skin resolution: ``paper`` or the edge, ``2 mm``."""
+    return "paper" if collision_edge_m is None else f"{collision_edge_m * 1e3:g} mm"
+
+
+def largest_force_dip(forces: list[float] | NDArray[np.float64], floor_n: float = 0.02) -> float:
+    """The largest fall of a force below its running maximum, as a fraction of that maximum
+    (0: it never falls), counted once the maximum exceeds ``floor_n`` [N] (first-contact
+    noise below it is not a press)."""
+    values = np.asarray(forces, dtype=np.float64)
+    if values.size == 0:
+        return 0.0
+    peak = np.maximum.accumulate(values)
+    counted = peak > floor_n
+    if not np.any(counted):
+        return 0.0
+    return float(np.max(1.0 - values[counted] / peak[counted]).clip(min=0.0))
+
+
+def benchmark_one(
+    method: str, mode: str, level: int, steps: int, collision_edge_m: float | None = None
+) -> dict[str, Any]:
     """Press the face ``steps`` steps beyond first contact with one method; the JSON record.
 
     Args:
@@ -94,15 +130,21 @@ def benchmark_one(method: str, mode: str, level: int, steps: int) -> dict[str, A
         mode: ``paper`` or ``robust``.
         level: phantom level (tet count of :data:`tissue.mesh.phantom.PHANTOM_LEVELS`).
         steps: probe advances of 0.2 mm after the first step in contact.
+        collision_edge_m: the skin's edge [m] (:attr:`tissue.TissueSpec.collision_edge_m`);
+            None: the paper's surface.
     """
-    mesh = breast_phantom(level)
+    mesh = breast_phantom(level, collision_edge_m=collision_edge_m)
     shape = linear_probe()
     kwargs: dict[str, Any] = {}
     kwargs["config"] = (
         PBDConfig.for_profile(mode) if method == "pbd" else SimulationConfig(mode=mode)
     )
     if method == "prescribed":
-        kwargs["params"] = PrescribedParams(online=True)
+        kwargs["params"] = (
+            PrescribedParams(online=True, sliding=True, skin_guard=True)
+            if mode == "robust"
+            else PrescribedParams(online=True)
+        )
     model = make_contact_model(method, mesh, shape, **kwargs)
     start = _apex_probe(mesh)
     quat = start.quat_wxyz
@@ -117,6 +159,9 @@ def benchmark_one(method: str, mode: str, level: int, steps: int) -> dict[str, A
     stopped = False
     statuses: Counter[str] = Counter()
     penetration_max = 0.0
+    skin_max = 0.0
+    skin_vertex_max = 0.0
+    normal_forces: list[float] = []
     first_contact_step: int | None = None
     step = 0
     result = None
@@ -127,6 +172,11 @@ def benchmark_one(method: str, mode: str, level: int, steps: int) -> dict[str, A
         wall_s += result.compute_ms / 1e3
         statuses[result.status.value] += 1
         penetration_max = max(penetration_max, result.penetration_max_m)
+        skin_max = max(skin_max, result.skin_penetration_m)
+        skin_vertex_max = max(
+            skin_vertex_max, float(result.diagnostics.get("skin_vertex_penetration_m", 0.0))
+        )
+        normal_forces.append(float(-direction @ result.force_world))
         in_contact = result.contact_count > 0 or bool(np.any(result.force_world != 0.0))
         if first_contact_step is None and in_contact:
             first_contact_step = step
@@ -149,11 +199,17 @@ def benchmark_one(method: str, mode: str, level: int, steps: int) -> dict[str, A
         "level": level,
         "tets": mesh.tet_count,
         "nodes": mesh.node_count,
+        "skin": skin_label(collision_edge_m),
+        "collision_edge_m": collision_edge_m,
+        "skin_vertices": model.skin.count,
         "step_ms": float(np.median(contact_ms)) if contact_ms else float("nan"),
         "step_ms_mean": float(np.mean(contact_ms)) if contact_ms else float("nan"),
         "step_ms_max": float(np.max(contact_ms)) if contact_ms else float("nan"),
         "steps_in_contact": len(contact_ms),
         "penetration_max_m": penetration_max,
+        "skin_penetration_max_m": skin_max,
+        "skin_vertex_penetration_max_m": skin_vertex_max,
+        "force_largest_dip": largest_force_dip(normal_forces),
         "force_n": float(-direction @ result.force_world),
         "force_world_n": [float(f) for f in result.force_world],
         "depth_beyond_contact_m": STEP_ADVANCE_M * (step - contact_step),
@@ -190,7 +246,9 @@ def _annotate_targets(records: list[dict[str, Any]]) -> None:
     """Add each record's target fields (in place): ``target_step_ms``/``meets_target`` for
     penalty and prescribed in paper mode, ``lm_over_penalty`` for LM records."""
     penalty_ms = {
-        (r["mode"], r["level"]): r["step_ms"] for r in records if r["method"] == "penalty"
+        (r["mode"], r["level"], r.get("skin", "paper")): r["step_ms"]
+        for r in records
+        if r["method"] == "penalty"
     }
     for record in records:
         if record["method"] in ("penalty", "prescribed") and record["mode"] == "paper":
@@ -204,7 +262,7 @@ def _annotate_targets(records: list[dict[str, Any]]) -> None:
             )
             record.update(robust_step_target(record["level"], record["step_ms"], converged))
         if record["method"] == "lm":
-            reference = penalty_ms.get((record["mode"], record["level"]))
+            reference = penalty_ms.get((record["mode"], record["level"], _row_key(record)[2]))
             if reference:
                 ratio = record["step_ms"] / reference
                 record["lm_over_penalty"] = ratio
@@ -220,22 +278,24 @@ def _pivot(
     records: list[dict[str, Any]], levels: list[int], key: str, scale: float, fmt: str
 ) -> list[str]:
     rows = []
-    seen: list[tuple[str, str]] = []
-    for record in records:
-        row_key = (record["method"], record["mode"])
-        if row_key not in seen:
-            seen.append(row_key)
-    for method, mode in seen:
+    for method, mode, skin in _row_keys(records):
         cells = []
         for level in levels:
             match = [
-                r
-                for r in records
-                if r["method"] == method and r["mode"] == mode and r["level"] == level
+                r for r in records if _row_key(r) == (method, mode, skin) and r["level"] == level
             ]
             cells.append(format(match[0][key] * scale, fmt) if match else "-".rjust(9))
-        rows.append(f"{method:>10} {mode:>6} " + " ".join(cells))
+        rows.append(f"{method:>10} {mode:>6} {skin:>7} " + " ".join(cells))
     return rows
+
+
+def _row_key(record: dict[str, Any]) -> tuple[str, str, str]:
+    return record["method"], record["mode"], record.get("skin", "paper")
+
+
+def _row_keys(records: list[dict[str, Any]]) -> list[tuple[str, str, str]]:
+    """The tables' rows: method, profile and skin, in the order first measured."""
+    return list(dict.fromkeys(_row_key(r) for r in records))
 
 
 #: The contact benchmark's figures: (caption, record key, scale, format).
@@ -244,6 +304,8 @@ _FIGURES = (
     ("slowest step in contact [ms]", "step_ms_max", 1.0, ".1f"),
     ("normal force at the final depth [N]", "force_n", 1.0, ".3f"),
     ("largest penetration over the run [mm]", "penetration_max_m", 1e3, ".3f"),
+    ("deepest skin facet inside the probe over the run [mm]", "skin_penetration_max_m", 1e3, ".3f"),
+    ("largest dip of the normal force over the press [%]", "force_largest_dip", 100.0, ".1f"),
     ("lesion 1 displacement at the final depth [mm]", "lesion1_displacement_m", 1e3, ".2f"),
 )
 
@@ -252,21 +314,20 @@ def markdown_tables(records: list[dict[str, Any]], levels: list[int]) -> list[Ma
     """The printed tables as Markdown: one per figure, method and profile by level."""
     tets = {r["level"]: r["tets"] for r in records}
     columns = [f"{level} ({tets[level]:,} tets)" for level in levels if level in tets]
-    rows_of = list(dict.fromkeys((r["method"], r["mode"]) for r in records))
     tables = []
     for caption, key, scale, fmt in _FIGURES:
-        table = MarkdownTable(caption, ["method", "profile", *columns])
-        for method, mode in rows_of:
+        table = MarkdownTable(caption, ["method", "profile", "skin", *columns])
+        for method, mode, skin in _row_keys(records):
             cells = []
             for level in levels:
                 if level not in tets:
                     continue
                 match = [
                     r for r in records
-                    if (r["method"], r["mode"], r["level"]) == (method, mode, level)
+                    if _row_key(r) == (method, mode, skin) and r["level"] == level
                 ]  # fmt: skip
                 cells.append(format(match[0][key] * scale, fmt) if match else "-")
-            table.rows.append([method, mode, *cells])
+            table.rows.append([method, mode, skin, *cells])
         tables.append(table)
     targets = MarkdownTable(
         "speed targets", ["target", "method / profile", "tets", "measured", "target", ""]
@@ -277,11 +338,24 @@ def markdown_tables(records: list[dict[str, Any]], levels: list[int]) -> list[Ma
     return tables
 
 
+def _print_record(record: dict[str, Any]) -> None:
+    print(
+        f"  {record['tets']:>6} tets {record['method']:>10}/{record['mode']:<6} "
+        f"{record['skin']:>7} skin {record['step_ms']:8.2f} ms/step "
+        f"(max {record['step_ms_max']:.1f}), F {record['force_n']:.3f} N "
+        f"(largest dip {record['force_largest_dip'] * 100:.1f} %), pen "
+        f"{record['penetration_max_m'] * 1e3:.3f} mm, skin "
+        f"{record['skin_penetration_max_m'] * 1e3:.3f} mm, lesion 1 "
+        f"{record['lesion1_displacement_m'] * 1e3:.2f} mm, {record['status_counts']}",
+        flush=True,
+    )
+
+
 def print_tables(records: list[dict[str, Any]], levels: list[int]) -> None:
     """Print step time, force and penetration per method/mode (rows) and level (columns),
     then the speed targets against the measurements."""
     tets = {r["level"]: r["tets"] for r in records}
-    header = f"{'method':>10} {'mode':>6} " + " ".join(
+    header = f"{'method':>10} {'mode':>6} {'skin':>7} " + " ".join(
         f"{tets.get(level, level):>9}" for level in levels
     )
     for title, key, scale, fmt in _FIGURES:
@@ -293,7 +367,10 @@ def print_tables(records: list[dict[str, Any]], levels: list[int]) -> None:
     for record in records:
         bad = {k: v for k, v in record["status_counts"].items() if k != "ok"}
         if bad:
-            print(f"  {record['method']}/{record['mode']} {record['tets']} tets: {bad}")
+            print(
+                f"  {record['method']}/{record['mode']} {record['skin']} skin "
+                f"{record['tets']} tets: {bad}"
+            )
         if record["stopped_by_wall_budget"]:
             print(
                 f"  {record['method']}/{record['mode']} {record['tets']} tets: stopped by the "
@@ -315,7 +392,8 @@ def target_rows(records: list[dict[str, Any]]) -> list[list[str]]:
 
     rows = []
     for r in records:
-        where, tets = f"{r['method']}/{r['mode']}", f"{r['tets']:,}"
+        where = f"{r['method']}/{r['mode']} ({r.get('skin', 'paper')} skin)"
+        tets = f"{r['tets']:,}"
         if "target_step_ms" in r:
             limit, met = f"<= {r['target_step_ms']:.0f} ms", verdict(r["meets_target"])
             rows.append(["paper step", where, tets, f"{r['step_ms']:.2f} ms", limit, met])
@@ -336,8 +414,10 @@ def run_contact_benchmark(
     json_path: Path,
     steps: int = 50,
     command: str | None = None,
+    skins: list[float | None] | None = None,
 ) -> list[dict[str, Any]]:
-    """Benchmark every method x mode x level; print tables; write a JSON list of records.
+    """Benchmark every method x mode x skin x level; print tables; write a JSON list of
+    records.
 
     Args:
         levels: phantom levels (tet counts); None: 623 to 26,220.
@@ -345,6 +425,8 @@ def run_contact_benchmark(
         modes: integration modes, ``paper`` and/or ``robust``.
         json_path: where the records go; rewritten after every record.
         steps: probe advances of 0.2 mm after first contact (50: a 10 mm press).
+        skins: the skin's resolutions, collision edges [m] or None for the paper's surface;
+            None: :data:`DEFAULT_SKINS`.
 
     Returns:
         The records (see the module docstring for the fields).
@@ -352,6 +434,7 @@ def run_contact_benchmark(
     levels = list(levels or DEFAULT_LEVELS)
     methods = list(methods or DEFAULT_METHODS)
     modes = list(modes or DEFAULT_MODES)
+    skins = list(DEFAULT_SKINS if skins is None else skins)
     print(
         f"probegym bench contact — face into the apex at 0.01 m/s, {steps} steps "
         f"({steps * STEP_ADVANCE_M * 1e3:.0f} mm) beyond first contact "
@@ -364,20 +447,14 @@ def run_contact_benchmark(
     records: list[dict[str, Any]] = []
     provenance = BenchRecord("probegym bench contact: step time, force and penetration", command)
     for level in levels:
-        for method in methods:
-            for mode in modes:
-                record = benchmark_one(method, mode, level, steps)
-                records.append(record)
-                print(
-                    f"  {record['tets']:>6} tets {method:>10}/{record['mode']:<6} "
-                    f"{record['step_ms']:8.2f} ms/step (max {record['step_ms_max']:.1f}), "
-                    f"F {record['force_n']:.3f} N, pen "
-                    f"{record['penetration_max_m'] * 1e3:.3f} mm, lesion 1 "
-                    f"{record['lesion1_displacement_m'] * 1e3:.2f} mm, {record['status_counts']}",
-                    flush=True,
-                )
-                _annotate_targets(records)
-                _write(records, json_path)  # keep what is measured so far
+        for skin in skins:
+            for method in methods:
+                for mode in modes:
+                    record = benchmark_one(method, mode, level, steps, skin)
+                    records.append(record)
+                    _print_record(record)
+                    _annotate_targets(records)
+                    _write(records, json_path)  # keep what is measured so far
     print_tables(records, levels)
     markdown = provenance.write(json_path, markdown_tables(records, levels))
     print(f"written: {json_path}, {markdown}")
