@@ -7,6 +7,18 @@ next call's substeps. Any MuJoCo stepping loop can host it (the environments do;
 simulation plugin can) by calling :meth:`step` with a control callback, or
 :meth:`before_substep` / :meth:`after_substeps` around its own ``mj_step``.
 
+What the F/T sensor reads. :meth:`after_substeps` ends by applying the new tissue step's
+wrench (the probe is where the tissue just saw it: q = q0, w = w0) and computing MuJoCo's
+forward dynamics there (``mj_forward``, 7 us), so that the step ends with the sensor reading
+the tissue's wrench at the probe's present pose: what a kinematic replay of the same poses
+gives (``tissue.make_tissue``, ``Tissue.step``). Left to the substeps, the sensor kept the
+last one's reading: the previous tissue step's w0 extrapolated by K to the pose one substep
+(2 ms) earlier, which missed the force-depth curve's stiffening and the contact points that
+entered within the step (pressing at 25 mm/s, 0.85 % low on average and up to 3 % where
+contact points enter; docs/environments.md, "The F/T sensor"). The extra ``mj_forward``
+changes no wrench the substeps apply; the arm's controller, which reads the mass matrix at
+the start of each step, now reads it at the step's end pose instead of one substep earlier.
+
 The wrench on the probe between tissue steps is the tissue's wrench linearised in the probe's
 displacement from the pose the tissue last saw:
 
@@ -190,7 +202,9 @@ class TissueCoupling:
 
     def after_substeps(self) -> tissue.TissueStep:
         """The tissue's step with the probe where the substeps left it (positions computed);
-        its wrench and stiffness then act until the next."""
+        its wrench and stiffness then act until the next. Ends with MuJoCo's forward
+        dynamics computed under the new wrench, so that the F/T sensor reads it (the module
+        docstring)."""
         position, rotation = self.probe_pose()
         # The tissue's input, converted from MuJoCo's pose: the coupling's work, timed apart
         # from the tissue's step.
@@ -228,7 +242,22 @@ class TissueCoupling:
         self.timing["tissue_s"] = stepped - started
         self.timing["stiffness_s"] = time.perf_counter() - stepped
         self.last_step = step
+        self._sense_at_step_end()
         return step
+
+    def _sense_at_step_end(self) -> None:
+        """Apply the new tissue step's wrench (the probe is at q0: no displacement) and
+        compute MuJoCo's forward dynamics at the step's end, so that the F/T sensor reads
+        the tissue's wrench at the pose the tissue just stepped to (positions computed).
+
+        Without it the sensor would keep the last substep's reading: the previous tissue
+        step's w0 extrapolated by K to the pose one substep earlier. ``mj_forward`` leaves
+        MuJoCo's integration state (positions, velocities, controls, warm start) as it is;
+        only what is derived from it is the step end's, such as the mass matrix the
+        controller reads at the next step's start (as :class:`envs.rigid.RigidCoupling`'s
+        step already leaves it)."""
+        self.before_substep()
+        mujoco.mj_forward(self.model, self.data)
 
 
 def probe_site_pose(

@@ -100,23 +100,45 @@ def lesion_in_image(
 def sensed_wrench(
     model: mujoco.MjModel, data: mujoco.MjData, names: SceneNames
 ) -> NDArray[np.float64]:
-    """The F/T sensor's wrench on the probe from the outside, (6,): force [N] then torque
-    [N m] about the probe origin, in the probe frame.
+    """The wrench on the probe from the outside as the F/T sensor gives it, (6,): force [N]
+    then torque [N m] about the probe origin, in the probe frame (forward dynamics computed
+    at the present state: the couplings do so at each step's end).
 
-    The sensor (at the flange end of the probe) reads minus the wrench of everything acting
-    on the probe below it: at rest -(m g + F_ext), in its frame. So: negate, tare the probe's
-    own weight (its mass at its centre of mass), move the torque to the probe origin and turn
-    both into the probe frame. Moving, the reading includes the probe's inertia too.
+    The sensor (at the flange end of the probe) reads the wrench the flange puts on the
+    probe, F_s (in its frame, torque about the site). Newton-Euler for the probe (mass m,
+    centre of mass c, inertia I_c, acceleration a_c, angular velocity w and acceleration
+    alpha) gives everything else acting on it, the tissue and any MuJoCo contact:
+
+        F_ext = -F_s + m (a_c - g),
+        T_ext(site) = -T_s + I_c alpha + w x (I_c w) + (c - site) x m (a_c - g),
+
+    a sensor's load compensation: at rest it tares the probe's weight (a_c - g = -g), moving
+    its inertia too (with the arm's 20 ms target steps the probe's speed ripples within each
+    step, m a_c about 0.03 N at 25 mm/s). The torque is then moved to the probe origin and
+    both turned into the probe frame.
     """
     site = names.ft_site
     site_rot = data.site_xmat[site].reshape(3, 3)
     force_site = data.sensordata[names.force_sensor_adr : names.force_sensor_adr + 3]
     torque_site = data.sensordata[names.torque_sensor_adr : names.torque_sensor_adr + 3]
     body = names.probe_body
-    weight = model.body_mass[body] * model.opt.gravity
+    # The probe's velocity and acceleration at its centre of mass, world frame, (angular,
+    # linear); MuJoCo's linear acceleration is a_c - g, what an accelerometer there reads.
+    velocity, acceleration = np.empty(6), np.empty(6)
+    mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_BODY, body, velocity, 0)
+    mujoco.mj_objectAcceleration(model, data, mujoco.mjtObj.mjOBJ_BODY, body, acceleration, 0)
+    spin, angular_acc = velocity[:3], acceleration[:3]
+    load = model.body_mass[body] * acceleration[3:]  # m (a_c - g) [N]
+    principal = data.ximat[body].reshape(3, 3)
+    inertia = principal @ np.diag(model.body_inertia[body]) @ principal.T  # I_c, world
     site_pos = data.site_xpos[site]
-    force = -site_rot @ force_site - weight
-    torque_about_site = -site_rot @ torque_site - cross3(data.xipos[body] - site_pos, weight)
+    force = -site_rot @ force_site + load
+    torque_about_site = (
+        -site_rot @ torque_site
+        + inertia @ angular_acc
+        + cross3(spin, inertia @ spin)
+        + cross3(data.xipos[body] - site_pos, load)
+    )
     origin = data.site_xpos[names.probe_site]
     torque = torque_about_site + cross3(site_pos - origin, force)
     probe_rot = data.site_xmat[names.probe_site].reshape(3, 3)

@@ -25,11 +25,12 @@ from tissue.contact import make_contact_model
 from tissue.contact.base import ContactModel, ContactResult
 from tissue.contact.placement import RestSkin, first_contact_pose, radial_roll_rad
 from tissue.contact.registry import contact_class
+from tissue.contact.surface_points import SurfacePoints
 from tissue.contact.wrench_stiffness import wrench_stiffness
 from tissue.errors import MeshError, TissueInputError
 from tissue.fem.material import TissueMaterials
 from tissue.lesions import Lesion, LesionTracker
-from tissue.mesh.lesion_shift import lesion_shift_limits, shift_lesions
+from tissue.mesh.lesion_shift import lesion_shift_limits, shift_lesions, surface_after_shift
 from tissue.probe import ProbeShape, quat_to_matrix
 from tissue.sim.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.spec import ResolvedTissue, TissueSpec, resolve_spec
@@ -108,7 +109,12 @@ class Tissue:
         self._model.sleep_speed_m_s = resolved.spec.sleep_speed_m_s
         mesh = resolved.mesh
         self._lesions = LesionTracker(mesh)
-        self._surface = SurfaceView(mesh, self._model.skin, self._lesions)
+        drawn = resolved.drawn_skin
+        self._surface = SurfaceView(
+            mesh,
+            self._model.skin if drawn is None else SurfacePoints(drawn.embedding, drawn.triangles),
+            self._lesions,
+        )
         # The mesh and the materials: a state restores only into the same body.
         digest = hashlib.sha256(
             mesh.nodes.tobytes() + mesh.tets.tobytes() + repr(resolved.materials).encode()
@@ -407,16 +413,19 @@ class Tissue:
                 f"materials must be a tissue.TissueMaterials; got {type(materials).__name__}"
             )
         mesh = resolved.mesh
+        drawn = resolved.drawn_skin
         if lesion_offsets_m is not None:
             try:
                 mesh = shift_lesions(mesh, lesion_offsets_m)
             except MeshError as error:
                 raise TissueInputError(str(error)) from error
+            if drawn is not None:
+                drawn = surface_after_shift(drawn, resolved.mesh.nodes, mesh.nodes, mesh.tets)
         spec = replace(
             resolved.spec, young_pa=None, poisson=None, lesion_stiffness_ratio=None,
             materials=materials,
         )  # fmt: skip
-        variant = replace(resolved, spec=spec, mesh=mesh, materials=materials)
+        variant = replace(resolved, spec=spec, mesh=mesh, materials=materials, drawn_skin=drawn)
         config, params = contact_class(resolved.method).settings_for_variant(
             variant, mesh, materials
         )

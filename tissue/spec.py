@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +22,7 @@ from tissue.contact.registry import contact_class, contact_method
 from tissue.contact.sleep import check_sleep_speed
 from tissue.errors import ConfigError, check_setting_names
 from tissue.fem.material import NeoHookean, TissueMaterials
-from tissue.mesh import TetMesh
+from tissue.mesh import CollisionSurface, TetMesh
 from tissue.probe import ProbeShape, parse_probe_spec
 from tissue.profile import PAPER_TISSUE_DT_S, Profile, check_tissue_dt
 
@@ -249,6 +249,9 @@ class ResolvedTissue:
         probe_shape: the probe's geometry.
         config: the FE simulation's configuration, or the tissue's own (PBD's).
         params: the strategy's parameters (None where ``config`` says all, as PBD's).
+        drawn_skin: the skin :meth:`tissue.Tissue.surface` draws where the contact skin is
+            finer than a drawing can take (:func:`drawn_skin`), embedded in the same volume;
+            None: the contact skin itself.
     """
 
     spec: TissueSpec
@@ -258,6 +261,7 @@ class ResolvedTissue:
     probe_shape: ProbeShape
     config: Any
     params: Any
+    drawn_skin: CollisionSurface | None = None
 
 
 def load_spec_mesh(spec: TissueSpec) -> TetMesh:
@@ -328,4 +332,23 @@ def resolve_spec(spec: TissueSpec, mesh: TetMesh | None = None) -> ResolvedTissu
     method = contact_method(spec.contact)
     materials = spec.resolved_materials()
     config, params = contact_class(method).settings_for(spec, mesh, materials)
-    return ResolvedTissue(spec, method, mesh, materials, spec.probe_shape(), config, params)
+    return ResolvedTissue(
+        spec, method, mesh, materials, spec.probe_shape(), config, params, drawn_skin(spec)
+    )
+
+
+def drawn_skin(spec: TissueSpec) -> CollisionSurface | None:
+    """The skin to draw for ``spec`` where its contact skin is finer than
+    :data:`tissue.mesh.skin.DRAWN_EDGE_M`: the same surface at that edge, or, where the
+    volume's boundary is finer still (the 105,004- and 176,506-tet levels), the mesh's own
+    surface; None where the contact skin is coarse enough to draw. The spec's volume is
+    the same whatever its skin, so the surface's embedding holds for the tissue's nodes."""
+    from tissue.mesh.skin import DRAWN_EDGE_M
+
+    if spec.collision_edge_m is None or spec.collision_edge_m >= DRAWN_EDGE_M:
+        return None
+    try:
+        mesh = load_spec_mesh(replace(spec, collision_edge_m=DRAWN_EDGE_M))
+    except ConfigError:
+        mesh = load_spec_mesh(replace(spec, collision_edge_m=None))
+    return mesh.collision_surface

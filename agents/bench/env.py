@@ -75,7 +75,7 @@ def benchmark_env(
     import envs  # noqa: F401 - registers the ids
     from envs.probe_env import ProbeEnv
 
-    settings = {"contact": contact, "profile": profile, "mesh": level}
+    settings: dict[str, Any] = {"contact": contact, "profile": profile, "mesh": level}
     settings["collision_edge_m"] = collision_edge_m
     env = gym.make(env_id, **settings)
     unwrapped = env.unwrapped

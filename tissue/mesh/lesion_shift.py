@@ -175,36 +175,37 @@ def lesion_shift_limits(mesh: TetMesh) -> NDArray[np.float64]:
     return limits
 
 
-def _with_skin_kept(
-    moved: TetMesh,
+def surface_after_shift(
     surface: CollisionSurface,
     old_nodes: NDArray[np.float64],
     nodes: NDArray[np.float64],
-) -> TetMesh:
-    """``moved`` with ``surface`` embedded at the same rest positions: the points whose tet
-    has a moved node embedded again, the others keeping their tet and weights (their tet is
-    where it was, and the lesions' blends move interior nodes only, so the skin's other tets
-    are too). A skin at the probe's scale has thousands of points, few of them over a moved
+    tets: NDArray[np.int64],
+) -> CollisionSurface:
+    """``surface`` embedded at the same rest positions in the volume whose nodes moved from
+    ``old_nodes`` to ``nodes`` [m] (n, 3) (same ``tets``): the points whose tet has a moved
+    node embedded again, the others keeping their tet and weights (their tet is where it
+    was, and the lesions' blends move interior nodes only, so the skin's other tets are
+    too). A skin at the probe's scale has thousands of points, few of them over a moved
     node: this keeps a randomised reset's cost off the skin."""
     changed = np.any(nodes != old_nodes, axis=1)
     redo = np.flatnonzero(np.any(changed[surface.embedding.tet_nodes], axis=1))
     tet_nodes = surface.embedding.tet_nodes.copy()
     weights = surface.embedding.weights.copy()
     if redo.size:
-        fresh = embed_points(nodes, moved.tets, surface.rest_vertices[redo])
+        fresh = embed_points(nodes, tets, surface.rest_vertices[redo])
         tet_nodes[redo] = fresh.tet_nodes
         weights[redo] = fresh.weights
-    kept = CollisionSurface(
+    return CollisionSurface(
         rest_vertices=surface.rest_vertices,
         triangles=surface.triangles,
         embedding=BarycentricEmbedding(tet_nodes, weights),
     )
-    return replace(moved, collision_surface=kept)
 
 
 def _with_nodes(mesh: TetMesh, nodes: NDArray[np.float64]) -> TetMesh:
     """``mesh`` with other rest node positions: the skin embedded where it was
-    (:func:`_with_skin_kept`), the tracked points carried by their barycentric embedding."""
+    (:func:`surface_after_shift`), the tracked points carried by their barycentric
+    embedding."""
     moved = TetMesh(
         nodes=nodes,
         tets=mesh.tets,
@@ -215,7 +216,8 @@ def _with_nodes(mesh: TetMesh, nodes: NDArray[np.float64]) -> TetMesh:
         metadata=dict(mesh.metadata),
     )
     if mesh.collision_surface is not None:
-        moved = _with_skin_kept(moved, mesh.collision_surface, mesh.nodes, nodes)
+        skin = surface_after_shift(mesh.collision_surface, mesh.nodes, nodes, mesh.tets)
+        moved = replace(moved, collision_surface=skin)
     if mesh.landmarks is not None:
         points = mesh.landmarks.embedding.interpolate(nodes)
         moved = moved.with_landmarks(mesh.landmarks.names, points)

@@ -36,6 +36,12 @@ from tissue.mesh.core import TetMesh, boundary_faces
 #: dome. Every step interpolates the whole surface from the volume's nodes and searches it
 #: for the probe; beyond this the surface, not the tissue, would set the step's cost.
 MAX_COLLISION_VERTICES = 200_000
+#: The skin drawn (:meth:`tissue.Tissue.surface`) is no finer than this edge [m], where the
+#: volume allows it: MuJoCo draws it with one mocap body per vertex, and at 2 mm (8,357
+#: vertices on the phantom) its collision stage overflowed its default arena (143 MB asked)
+#: while Studio's viewer would stream about 1 MB a frame; at 4 mm a 480 x 480 frame took 79
+#: ms against 29 ms on the paper's surface. Contact uses the skin at its own resolution.
+DRAWN_EDGE_M = 0.004
 #: A surface point lying farther outside its tet than this fraction of the tet's longest
 #: edge is not embedded in the volume (:func:`check_embedded`). The phantom's own surfaces,
 #: curved over a faceted volume, lie at most 0.72 of it outside (the 2,539-tet level, whose
