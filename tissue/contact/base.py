@@ -154,6 +154,14 @@ class ContactModel(FreeAirSleep, abc.ABC):
         # The skin: the collision surface (or the volume's boundary), whatever points the
         # method itself acts on; skin penetration is measured on it for every method.
         self.skin = contact_surface(mesh)
+        # Each skin triangle's longest edge at rest [m]: the skin's resolution, which sets
+        # how deep a facet may lie with its vertices held (skin_depth).
+        corners = self.skin.positions(mesh.nodes)[self.skin.triangles]
+        self._skin_rest_longest_m = np.ascontiguousarray(
+            np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
+            if corners.size
+            else np.zeros(0)
+        )
         self._time = 0.0
         # The probe pose the tissue last saw (a step sweeps from it), None before the first.
         self._last_pose: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
@@ -513,12 +521,18 @@ class ContactModel(FreeAirSleep, abc.ABC):
         method whatever points the method itself acts on.
 
         A step is ``penetrated`` (:class:`tissue.status.StepStatus`) when a facet lies
-        deeper than its allowance (how deep a facet of its size can cut the probe's rounded
-        edge with its vertices outside, :func:`tissue.probe.surface_depth.facet_allowance_m`)
-        plus the method's :attr:`penetration_bound_m`: deeper than the method's bound on the
-        points it holds and the skin's resolution together explain."""
+        deeper than its allowance (how deep a facet of its size at rest can cut the probe's
+        rounded edge with its vertices outside,
+        :func:`tissue.probe.surface_depth.facet_allowance_m`) plus the method's
+        :attr:`penetration_bound_m`: deeper than the method's bound on the points it holds
+        and the skin's resolution together explain. The size at rest, not as deformed: a
+        facet dragged across the probe, its vertices on either side, is the skin passing
+        through it, not a coarse skin."""
         return surface_depth(
-            self.probe, self.skin.positions(self.node_positions), self.skin.triangles
+            self.probe,
+            self.skin.positions(self.node_positions),
+            self.skin.triangles,
+            self._skin_rest_longest_m,
         )
 
     def resting_landmarks(self) -> NDArray[np.float64]:

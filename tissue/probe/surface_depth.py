@@ -87,9 +87,11 @@ class SurfaceDepth:
     Attributes:
         depth_m: the deepest point of the surface's facets inside the probe [m], >= 0.
         vertex_depth_m: the deepest of its vertices [m], >= 0 (<= ``depth_m``).
-        excess_m: the largest depth of a facet beyond its :func:`facet_allowance_m` [m]:
-            how much deeper than its resolution explains, were its vertices held out (<= 0
-            where every facet inside is explained; -inf where none is inside).
+        excess_m: the largest depth of a facet beyond its :func:`facet_allowance_m` [m] (of
+            its longest edge at rest where :func:`surface_depth` is given the rest lengths,
+            else as it is): how much deeper than its resolution explains, were its vertices
+            held out (<= 0 where every facet inside is explained; -inf where none is
+            inside).
         point_world: that deepest point [m], shape (3,), or None where nothing is inside.
         triangle: the triangle holding it, or -1.
     """
@@ -102,10 +104,15 @@ class SurfaceDepth:
 
 
 _CLEAR = SurfaceDepth(0.0, 0.0, -math.inf, None, -1)
+# No rest lengths: the kernel takes the facets' as deformed.
+_NO_REST = np.zeros(0)
 
 
 def surface_depth(
-    probe: Probe, vertices_world: NDArray[np.float64], triangles: NDArray[np.int64]
+    probe: Probe,
+    vertices_world: NDArray[np.float64],
+    triangles: NDArray[np.int64],
+    rest_longest_edge_m: NDArray[np.float64] | None = None,
 ) -> SurfaceDepth:
     """The deepest point of a triangle surface inside the probe (see the module docstring).
 
@@ -113,6 +120,10 @@ def surface_depth(
         probe: the posed probe.
         vertices_world: the surface's vertices [m], shape (vertex_count, 3).
         triangles: vertex indices, shape (triangle_count, 3).
+        rest_longest_edge_m: each triangle's longest edge at rest [m], (triangle_count,):
+            the allowances (:func:`facet_allowance_m`) are then the skin's resolution's, not
+            the facets' as deformed (a facet stretched over the probe, its vertices dragged
+            apart, would otherwise excuse its own depth); None: as deformed.
     """
     vertices = np.ascontiguousarray(vertices_world, dtype=np.float64)
     triangles = np.ascontiguousarray(triangles, dtype=np.int64)
@@ -138,11 +149,12 @@ def surface_depth(
             local,
             triangles,
             candidates[:count],
+            _NO_REST if rest_longest_edge_m is None else rest_longest_edge_m,
             point,
         )
     else:
         depth, vertex_depth, triangle, excess = _sampled_depth(
-            probe, local, triangles, candidates[:count], point
+            probe, local, triangles, candidates[:count], rest_longest_edge_m, point
         )
     if triangle < 0:
         return _CLEAR
@@ -160,6 +172,7 @@ def _sampled_depth(
     local: NDArray[np.float64],
     triangles: NDArray[np.int64],
     candidates: NDArray[np.int64],
+    rest_longest_edge_m: NDArray[np.float64] | None,
     out_point: NDArray[np.float64],
 ) -> tuple[float, float, int, float]:
     """The depth for a shape without a compiled distance: the ``candidates`` triangles
@@ -178,6 +191,8 @@ def _sampled_depth(
     out_point[:] = samples.reshape(-1, 3)[deepest]
     edges = corners - np.roll(corners, 1, axis=1)
     longest = np.sqrt((edges * edges).sum(axis=2).max(axis=1))
+    if rest_longest_edge_m is not None:
+        longest = rest_longest_edge_m[candidates]
     allowance = np.array([facet_allowance_m(L, probe.shape.edge_radius_m) for L in longest])
     per_triangle = -distance.min(axis=1)
     inside = per_triangle > 0.0
@@ -245,10 +260,11 @@ def _allowance(longest, radius):  # pragma: no cover - compiled
 
 @nb.njit(cache=True)
 def _depth_kernel(
-    kind, params, convex, radius, local, triangles, candidates, out_point
+    kind, params, convex, radius, local, triangles, candidates, rest_longest, out_point
 ):  # pragma: no cover - compiled
     """:func:`surface_depth` over the ``candidates`` triangles (vertices ``local`` in the
-    probe frame [m]), for a compiled shape whose smallest edge radius is ``radius`` [m].
+    probe frame [m]), for a compiled shape whose smallest edge radius is ``radius`` [m], the
+    allowances from ``rest_longest`` [m] (t,) where it is not empty.
     Writes the deepest point (probe frame) to ``out_point``; returns (depth, vertex depth,
     its triangle or -1, the largest excess over a facet's allowance)."""
     vertex_count = local.shape[0]
@@ -285,7 +301,7 @@ def _depth_kernel(
             ey = corners[0, k, 1] - corners[0, (k + 1) % 3, 1]
             ez = corners[0, k, 2] - corners[0, (k + 1) % 3, 2]
             longest = max(longest, math.sqrt(ex * ex + ey * ey + ez * ez))
-        allowance = _allowance(longest, radius)
+        allowance = _allowance(rest_longest[t] if rest_longest.size else longest, radius)
         vertex_deepest = max(0.0, -lowest)
         vertex_depth = max(vertex_depth, vertex_deepest)
         if vertex_deepest > depth:
