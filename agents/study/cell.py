@@ -29,14 +29,16 @@ from tissue.profile import profile_choices
 #: (the tissue slipping out from under the probe); the largest jump is recorded instead.
 STUDY_LIMITS = StabilityLimits(landmark_jump_margin_m=None)
 
-# Scenes opened in this process (a worker runs many cells of one scene).
-_SCENES: dict[str, StudyScene] = {}
+# Scenes opened in this process (a worker runs many cells of one scene), by scene and skin.
+_SCENES: dict[tuple[str, float | None], StudyScene] = {}
 
 
-def scene_for(name: str) -> StudyScene:
-    if name not in _SCENES:
-        _SCENES[name] = open_scene(name)
-    return _SCENES[name]
+def scene_for(spec: StudySpec) -> StudyScene:
+    """The study's scene, with its skin at the spec's resolution."""
+    key = (spec.scene, spec.collision_edge_m)
+    if key not in _SCENES:
+        _SCENES[key] = open_scene(spec.scene, spec.collision_edge_m)
+    return _SCENES[key]
 
 
 def run_cell(spec: StudySpec, cell: Cell, tissue_spec: TissueSpec | None = None) -> dict[str, Any]:
@@ -53,7 +55,7 @@ def run_cell(spec: StudySpec, cell: Cell, tissue_spec: TissueSpec | None = None)
     ``tissue`` says which: ``"study"`` or ``"environment"``.
     """
     started = time.perf_counter()
-    scene = scene_for(spec.scene)
+    scene = scene_for(spec)
     mesh = scene.mesh(cell.level)
     if tissue_spec is None:
         model, shape = _study_model(scene, mesh, cell)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -53,6 +54,12 @@ def add_study_arguments(study: argparse.ArgumentParser) -> None:
         "--reference-kind",
         default="dynamic",
         help="dynamic (the cells' own experiment, default) | quasi-static (1 mm increments)",
+    )
+    study.add_argument(
+        "--skin",
+        default="paper",
+        help="the skin's resolution: 'paper' (the scene's own 1,004 triangles, default: "
+        "Table 1 as published) or a collision edge in mm, e.g. 2 (the environments')",
     )
     study.add_argument("--measured", type=Path, default=None, help="CSV of measured positions")
     study.add_argument("--speed", type=float, default=0.01, help="probe speed [m/s]")
@@ -136,7 +143,21 @@ def spec_from_args(args: argparse.Namespace) -> StudySpec:
         speed_m_s=args.speed,
         settle_steps=args.settle_steps,
         measured_csv=args.measured,
+        collision_edge_m=_skin(args.skin),
     )
+
+
+def _skin(value: str) -> float | None:
+    """``--skin``: ``paper`` (None) or an edge in mm, to metres."""
+    if value.strip().lower() == "paper":
+        return None
+    try:
+        edge_mm = float(value)
+    except ValueError:
+        raise ConfigError(f"--skin is 'paper' or an edge in mm; got {value!r}") from None
+    if not (math.isfinite(edge_mm) and edge_mm > 0.0):
+        raise ConfigError(f"--skin must be a positive edge in mm; got {value!r}")
+    return edge_mm * 1e-3
 
 
 def run_study_command(args: argparse.Namespace) -> int:

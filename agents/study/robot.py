@@ -101,14 +101,20 @@ def check_robot_spec(spec: StudySpec) -> None:
 # ---------------------------------------------------------------------- one cell
 
 
-def make_robot_env(cell: Cell) -> Any:
-    """The cell's environment, unwrapped (the arm, the probe and the cell's tissue)."""
+def make_robot_env(cell: Cell, spec: StudySpec) -> Any:
+    """The cell's environment, unwrapped (the arm, the probe and the cell's tissue), its skin
+    the study's (the paper's surface unless ``--skin`` says otherwise), so that robot and
+    kinematic cells press the same skin."""
     import gymnasium as gym
 
     import envs  # noqa: F401 - registers the environments
 
     return gym.make(
-        ROBOT_ENV_ID, mesh=cell.level, contact=cell.method, profile=cell.config.value
+        ROBOT_ENV_ID,
+        mesh=cell.level,
+        contact=cell.method,
+        profile=cell.config.value,
+        collision_edge_m=spec.collision_edge_m,
     ).unwrapped
 
 
@@ -180,11 +186,11 @@ def run_robot_cell(spec: StudySpec, cell: Cell, env: Any | None = None) -> dict[
     from envs.rotations import quat_matrix
 
     started = time.perf_counter()
-    scene = scene_for(spec.scene)
+    scene = scene_for(spec)
     mesh = scene.mesh(cell.level)
     owned = env is None
     if env is None:
-        env = make_robot_env(cell)
+        env = make_robot_env(cell, spec)
     try:
         if not np.array_equal(env.tissue.rest_nodes_m, mesh.nodes):
             raise RuntimeError(f"the environment's level {cell.level} mesh is not the study's")

@@ -99,7 +99,7 @@ def robot_cell_with_twin(
 ) -> dict[str, Any]:
     """One robot cell compared with its kinematic twin (:func:`kinematic_twin`, on the
     tissue the cell's environment built): its ``results.jsonl`` record."""
-    env = make_robot_env(cell)
+    env = make_robot_env(cell, spec)
     try:
         record = run_robot_cell(spec, cell, env)
         tissue_spec = env.tissue.spec
@@ -119,7 +119,7 @@ def kinematic_records(
         return {}
     previous = json.loads(spec_path.read_text())
     current = spec.as_json()
-    keys = ("scene", "depths_m", "speed_m_s", "settle_steps")
+    keys = ("scene", "collision_edge_m", "depths_m", "speed_m_s", "settle_steps")
     changed = [key for key in keys if previous.get(key) != current.get(key)]
     if changed:
         log(
@@ -161,7 +161,7 @@ def run_robot_study(
     figures; kinematic twins come from ``study_out``'s results where they match, else they
     are run here with the study's own code."""
     check_robot_spec(spec)
-    scene = scene_for(spec.scene)
+    scene = scene_for(spec)
     lesions = study_lesions(spec, scene)
     out = study_out / ROBOT_DIR
     with exclusive_folder(out, "probegym study --robot"):

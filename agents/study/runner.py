@@ -57,6 +57,7 @@ CARRIED_REFERENCES_DIR = "references"
 # Settings that change the physics of a cell: a rerun must keep them.
 _PHYSICS_KEYS = (
     "scene",
+    "collision_edge_m",
     "depths_m",
     "speed_m_s",
     "settle_steps",
@@ -177,7 +178,7 @@ def run_study(
     """
     if workers < 1:
         raise ConfigError(f"--workers must be >= 1; got {workers}")
-    scene = scene_for(spec.scene)
+    scene = scene_for(spec)
     lesions = study_lesions(spec, scene)
     measured = read_measured_csv(spec.measured_csv) if spec.measured_csv else None
     # One study writes to a folder at a time: two rewriting results.jsonl at once each kept
@@ -411,7 +412,7 @@ def _log_reference(
 
 
 def _reference_task(spec: StudySpec, lesion: int) -> tuple[dict[str, Any], bool]:
-    return load_or_compute_reference(spec, scene_for(spec.scene), lesion)
+    return load_or_compute_reference(spec, scene_for(spec), lesion)
 
 
 def _run_all(

@@ -51,26 +51,36 @@ class StudyScene:
         name: ``synthetic`` or ``paper``.
         directory: the published scene's directory (None for synthetic).
         lesion_ids: the scene's lesion numbers (1-based).
+        collision_edge_m: the skin's edge [m] (:attr:`tissue.TissueSpec.collision_edge_m`);
+            None: the scene's own surface (the paper's).
     """
 
     name: str
     directory: Path | None
     lesion_ids: tuple[int, ...]
     _scene: Any = field(default=None, repr=False)
+    collision_edge_m: float | None = None
 
     # ------------------------------------------------------------------ meshes
 
     def mesh(self, level: int) -> TetMesh:
-        """The scene's volume mesh at ``level`` (generated and cached on first use)."""
+        """The scene's volume mesh at ``level`` (generated and cached on first use), its skin
+        at :attr:`collision_edge_m`."""
         if self.directory is None:
             from tissue.mesh.phantom import breast_phantom
 
-            return breast_phantom(level)
+            return breast_phantom(level, collision_edge_m=self.collision_edge_m)
         if level == NATIVE_LEVEL:
-            return self.paper_scene().mesh
-        from tissue.mesh.paper_scene import remesh_paper_scene
+            mesh = self.paper_scene().mesh
+        else:
+            from tissue.mesh.paper_scene import remesh_paper_scene
 
-        return remesh_paper_scene(self.directory, level)
+            mesh = remesh_paper_scene(self.directory, level)
+        if self.collision_edge_m is None:
+            return mesh
+        from tissue.mesh.skin import with_collision_edge
+
+        return with_collision_edge(mesh, self.collision_edge_m)
 
     def paper_scene(self) -> Any:
         if self._scene is None:
@@ -86,16 +96,17 @@ class StudyScene:
 
     def fingerprint(self) -> str:
         """Changes whenever the scene's data change (keys the reference cache)."""
+        skin = "" if self.collision_edge_m is None else f"-skin{self.collision_edge_m:g}"
         if self.directory is None:
             from tissue.mesh.phantom import GENERATOR_VERSION, PhantomSpec
 
-            return f"synthetic-g{GENERATOR_VERSION}-{PhantomSpec().content_hash()[:16]}"
+            return f"synthetic-g{GENERATOR_VERSION}-{PhantomSpec().content_hash()[:16]}{skin}"
         digest = hashlib.sha256()
         for path in sorted(self.directory.rglob("*")):
             if path.is_file():
                 digest.update(path.relative_to(self.directory).as_posix().encode())
                 digest.update(path.read_bytes())
-        return f"paper-{digest.hexdigest()[:16]}"
+        return f"paper-{digest.hexdigest()[:16]}{skin}"
 
     # ------------------------------------------------------------------ paths
 
@@ -154,10 +165,11 @@ def _fixed_base_samples(mesh: TetMesh, per_edge: int = 6) -> NDArray[np.float64]
     return np.einsum("gk,fka->fga", weights, corners).reshape(-1, 3)
 
 
-def open_scene(scene: str) -> StudyScene:
-    """``synthetic``, ``paper`` or a directory; a clear error for anything unreadable."""
+def open_scene(scene: str, collision_edge_m: float | None = None) -> StudyScene:
+    """``synthetic``, ``paper`` or a directory, its skin at ``collision_edge_m`` [m] (None:
+    its own); a clear error for anything unreadable."""
     if scene == "synthetic":
-        return StudyScene("synthetic", None, tuple(range(1, 11)))
+        return StudyScene("synthetic", None, tuple(range(1, 11)), None, collision_edge_m)
     directory = default_paper_scene_dir() if scene == "paper" else Path(scene)
     if not directory.is_dir():
         raise ConfigError(
@@ -166,4 +178,4 @@ def open_scene(scene: str) -> StudyScene:
     from tissue.mesh.paper_scene import load_paper_scene
 
     loaded = load_paper_scene(directory)
-    return StudyScene("paper", directory.resolve(), loaded.tumour_ids, loaded)
+    return StudyScene("paper", directory.resolve(), loaded.tumour_ids, loaded, collision_edge_m)

@@ -107,6 +107,9 @@ class StudySpec:
         settle_steps: the most steps a cell holds still at each depth to settle (see
             :data:`STUDY_SETTLE_STEPS`).
         measured_csv: measured lesion positions to score against instead of the reference.
+        collision_edge_m: the skin's resolution, its collision surface's edge [m]
+            (:attr:`tissue.TissueSpec.collision_edge_m`); None (default): the scene's own
+            surface, the paper's 1,004 triangles, as Table 1 was made with.
     """
 
     scene: str = "synthetic"
@@ -120,8 +123,16 @@ class StudySpec:
     measured_csv: Path | None = field(default=None)
     settle_steps: int = STUDY_SETTLE_STEPS
     reference_kind: ReferenceKind = ReferenceKind.DYNAMIC
+    collision_edge_m: float | None = None
 
     def __post_init__(self) -> None:
+        if self.collision_edge_m is not None:
+            edge = self.collision_edge_m
+            if isinstance(edge, bool) or not isinstance(edge, (int, float, np.floating)):
+                raise ConfigError(f"--skin is an edge in mm or 'paper'; got {edge!r}")
+            if not (np.isfinite(edge) and edge > 0.0):
+                raise ConfigError(f"--skin must be a positive edge; got {edge!r} m")
+            object.__setattr__(self, "collision_edge_m", float(edge))
         object.__setattr__(self, "methods", tuple(contact_method(m) for m in self.methods))
         object.__setattr__(self, "configs", tuple(Profile.parse(c) for c in self.configs))
         object.__setattr__(self, "levels", tuple(parse_study_level(v) for v in self.levels))
@@ -187,6 +198,7 @@ class StudySpec:
             "speed_m_s": self.speed_m_s,
             "settle_steps": self.settle_steps,
             "measured_csv": None if self.measured_csv is None else str(self.measured_csv),
+            "collision_edge_m": self.collision_edge_m,
         }
 
 

@@ -259,6 +259,8 @@ def test_study_refuses_different_physics_in_the_same_directory(tiny_study) -> No
         (["--lesions", "11"], "not in the synthetic scene"),
         (["--workers", "0"], "--workers"),
         (["--settle-steps", "0"], "settle_steps must be a whole number of steps >= 1"),
+        (["--skin", "2mm"], "--skin is 'paper' or an edge in mm"),
+        (["--skin", "-2"], "--skin must be a positive edge"),
         (
             [
                 "--levels",
@@ -304,6 +306,28 @@ def test_bad_arguments_fail_before_any_work(
     assert message in capsys.readouterr().err
     assert not (out / RESULTS_FILE).exists()
     assert meshed == ([623] if "drive the probe into the fixed base" in message else [])
+
+
+def test_the_study_runs_on_a_finer_skin_and_refuses_one_too_coarse(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--skin 4``: the cells press a 4 mm skin (its facets held where the paper's cut the
+    probe's rim), recorded in the spec; a skin coarser than a level's volume is refused with
+    the numbers before any cell runs."""
+    from agents.cli import main
+
+    out = tmp_path / "skin"
+    arguments = ["--levels", "623", "--lesions", "1", "--methods", "lm", "--profile", "robust"]
+    arguments += ["--reference-level", "623", "--depths", "0.004", "--settle-steps", "3"]
+    assert main(["study", "--out", str(out), "--no-progress", *arguments, "--skin", "4"]) == 0
+    assert json.loads((out / "study.json").read_text())["collision_edge_m"] == 0.004
+    (record,) = read_results(out / RESULTS_FILE)
+    assert record["status"] == "ok" and record["stability_percent"] == 100.0
+    refused = tmp_path / "refused"
+    code = main(["study", "--out", str(refused), "--no-progress", *arguments, "--skin", "40"])
+    assert code == 2
+    assert "coarser than the volume's boundary" in capsys.readouterr().err
+    assert not (refused / RESULTS_FILE).exists()
 
 
 def test_default_lesions_leave_tissue_under_the_deepest_pose() -> None:
