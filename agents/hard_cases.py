@@ -161,7 +161,10 @@ def build_case_model(
         default = default_stiffness_n_per_m(surface, mesh, materials)
         kwargs["params"] = PenaltyParams(stiffness_n_per_m=default * case.penalty_stiffness_scale)
     elif method == "prescribed":
-        kwargs["params"] = PrescribedParams(online=profile_choices(config).online_prescribed)
+        # As the profile runs it: robust holds an online, sliding node set with the skin
+        # guarded (PrescribedContact.profile_params); paper, the set found at first contact.
+        online = profile_choices(config).online_prescribed
+        kwargs["params"] = PrescribedParams(online=online, sliding=online, skin_guard=online)
     return make_contact_model(method, mesh, shape, **kwargs)
 
 

@@ -11,9 +11,10 @@ sums in the serial loop's order: the results are the same bits (checked by
 ``tests/test_solvers.py``).
 
 The process's thread policy (:func:`configure_threads`) is an explicit call, made by the
-command line and the environments before they build a tissue; importing ``tissue`` sets
-nothing process-wide. Where no one calls it, the first parallel kernel applies the default
-policy (:data:`DEFAULT_POLICY`). The policy:
+command line and the environments before they build a tissue (an environment keeps a policy
+already in force: an argument left out keeps its value); importing ``tissue`` sets nothing
+process-wide. Where no one calls it, the first parallel kernel applies the default policy
+(:data:`DEFAULT_POLICY`). The policy:
 
 - numba's threading layer: ``tbb`` (Intel TBB, from the ``tbb`` wheel) by default, because it
   is both fork-safe and thread-safe. numba's ``omp`` layer (GNU OpenMP) makes a child forked
@@ -33,9 +34,16 @@ policy (:data:`DEFAULT_POLICY`). The policy:
   thread whatever this says.
 
 Bits: a tissue below that size gives the same bits whatever the thread count (its build and
-its steps run the serial builds). Above it, parallel reductions sum in per-thread parts, so
-the last digits follow the thread count: ``configure_threads(threads=1)`` makes them
-repeatable across machines.
+its steps run the serial builds). So does one below
+``tissue.sim.solvers.SERIAL_CG_UNKNOWNS`` (40,000 unknowns; every phantom level up to 26,220
+tets): its parallel kernels write each entry from one thread, in an order that does not
+depend on the thread count, its CG runs on one thread, and the product with its node blocks
+(``tissue.sim.solvers.node_blocks``), which runs in parallel steps too, is one part summed in
+row order. Above that size CG's products split the matrix in one part per thread and its dot
+products are parallel reductions, which sum in per-thread parts, so the FE methods' last
+digits follow the thread count (from the phantom level of 105,004 tets up; PBD's sweep keeps
+its bits): ``configure_threads(threads=1)`` makes them repeatable across machines. Measured
+in docs/tissue-model.md, "Threads".
 """
 
 from __future__ import annotations
@@ -103,20 +111,24 @@ _POLICY: list[ThreadPolicy] = []  # the policy in force, once applied
 
 
 def configure_threads(
-    threads: int | None = None, layer: str = "auto", mkl_sequential: bool = True
+    threads: int | None = None, layer: str | None = None, mkl_sequential: bool | None = None
 ) -> ThreadPolicy:
     """Set the process's thread policy for the tissue (see the module docstring).
 
-    Call it once, before building a tissue (the command line and the environments do). The
-    threading layer and MKL's choice are made once per process; calling again with a
-    different layer or MKL choice after they are in force raises, a different thread count
-    is applied.
+    Call it before building a tissue (the command line and the environments do). An argument
+    left out (None) keeps the value in force, or takes :data:`DEFAULT_POLICY`'s on the first
+    call: ``configure_threads()`` applies the default policy where none is in force and keeps
+    one that is, as an environment needs where its user set one. The threading layer and
+    MKL's choice are made once per process; calling again with a different layer or MKL
+    choice after they are in force raises, a different thread count is applied.
 
     Args:
-        threads: numba threads for tissues large enough to run in parallel (None: all cores).
+        threads: numba threads for tissues large enough to run in parallel (None: the count
+            in force; on the first call, numba's, all cores unless NUMBA_NUM_THREADS says).
         layer: ``auto`` (TBB where it loads, else numba's next), ``tbb``, ``omp`` or
-            ``workqueue``.
-        mkl_sequential: run MKL Pardiso sequentially (the default; bitwise repeatable).
+            ``workqueue`` (None: the layer in force, else ``auto``).
+        mkl_sequential: run MKL Pardiso sequentially (None: the choice in force, else True;
+            bitwise repeatable).
 
     Returns:
         the policy in force.
@@ -125,9 +137,13 @@ def configure_threads(
         ConfigError: an invalid value, or a layer that cannot be loaded or differs from the
             one already running.
     """
-    policy = ThreadPolicy(threads, layer, mkl_sequential)
+    current = _POLICY[0] if _POLICY else DEFAULT_POLICY
+    policy = ThreadPolicy(
+        current.threads if threads is None else threads,
+        current.layer if layer is None else layer,
+        current.mkl_sequential if mkl_sequential is None else mkl_sequential,
+    )
     if _POLICY:
-        current = _POLICY[0]
         if (policy.layer, policy.mkl_sequential) != (current.layer, current.mkl_sequential):
             raise ConfigError(
                 f"the thread policy is already in force (layer {current.layer!r}, MKL "

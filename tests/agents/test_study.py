@@ -146,7 +146,7 @@ def test_a_killed_reference_resumes_where_it_saved_its_progress(
     spec = StudySpec(
         levels=(623,), lesions=(1,), reference_level=623, depths_m=(0.003, 0.006, 0.009)
     )
-    scene = scene_for(spec.scene)
+    scene = scene_for(spec)
     step, taken = LagrangeContact.step, []
 
     def counting(self, *args):
@@ -337,7 +337,7 @@ def test_default_lesions_leave_tissue_under_the_deepest_pose() -> None:
     from agents.study.cell import scene_for
     from tissue.probe import parse_probe_spec
 
-    scene = scene_for("synthetic")
+    scene = scene_for(StudySpec())
     mesh = scene.mesh(4126)
     shape = parse_probe_spec("face")
     depths = StudySpec().depths_m
@@ -444,7 +444,7 @@ def test_reference_kind_is_the_specs_and_keys_what_it_depends_on(paper_scene_dir
 
     def key(spec: StudySpec, **changes: object) -> str:
         changed = replace(spec, **changes)  # type: ignore[arg-type]
-        return reference_key(changed, scene_for(changed.scene), 1)
+        return reference_key(changed, scene_for(changed), 1)
 
     assert key(static) == key(static, settle_steps=300)
     assert key(static) != key(synthetic)
@@ -574,7 +574,7 @@ def test_robust_lm_settles_onto_its_own_levels_reference() -> None:
     spec = StudySpec(
         levels=(4126,), lesions=(1,), reference_level=4126, reference_kind="quasi-static"
     )  # type: ignore[arg-type]  # fmt: skip
-    reference = compute_reference(spec, scene_for(spec.scene), 1)
+    reference = compute_reference(spec, scene_for(spec), 1)
     record = run_cell(spec, Cell(Profile.ROBUST, "lm", 4126, 1))
     assert record["stability_percent"] == 100.0 and reference["instability"] is None
     errors = np.linalg.norm(

@@ -22,6 +22,18 @@ point at the step's pose, and slides freely within it (a Dirichlet condition on 
 coordinate, in a frame rotated to that normal; see :mod:`tissue.sim.frames`). Its reaction is
 normal to the probe; it leaves contact when that reaction pulls.
 
+With the skin guarded as well (``skin_guard``, the robust profile's), the set is settled
+within the step, from the solved state rather than predicted from the start: a node joins
+when the guarded step leaves it inside the probe deeper than the guard lets the skin lie,
+and leaves when its reaction pulls, even where the probe's new pose would hold it inside;
+the step is solved again from its start after each change (:meth:`_settled_step`). Holding
+a node the probe's new pose merely contained put it on the probe's face where the skin
+above it -- the collision surface, about 0.5 mm outside the coarse volume's boundary node
+there -- was kept out by the guard: the node pulled the probe in (6-19 N at the apex of
+1,363 tets under a 2 mm skin) while the guard's springs pushed out by as much, and the
+force fell by a quarter as the two fought (``docs/contact.md``, "Forces that grow with
+depth"). A node in tension that the pressing probe's new pose held inside was never let go.
+
 Where online prescribed displacement still differs from Lagrange multipliers:
 
 - without ``sliding``, nodes in contact stick to the probe (no tangential sliding: infinite
@@ -34,11 +46,13 @@ Where online prescribed displacement still differs from Lagrange multipliers:
 - a node leaves contact one step after its reaction turns tensile (at once when the probe
   withdraws past it), and enters only once the probe has passed it (a penetration of up to
   one step's motion is corrected at entry); a node in tension that the probe's new pose
-  would hold inside it stays held where it was.
+  would hold inside it stays held where it was (all three without the guard; with it the
+  set is settled within the step, above).
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -47,16 +61,25 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from tissue.contact.fe_model import FEContactModel
-from tissue.contact.penalty import PenaltyTerm, augmented_step, default_stiffness_n_per_m
+from tissue.contact.penalty import (
+    PenaltyTerm,
+    augmented_solve,
+    augmented_step,
+    default_stiffness_n_per_m,
+)
 from tissue.contact.registry import register_contact
 from tissue.contact.wrench_stiffness import ContactConstraints
 from tissue.errors import ConfigError
 from tissue.mesh import TetMesh, boundary_faces
 from tissue.profile import profile_choices
+from tissue.sim.integrator import StepOutcome
 from tissue.status import StepStatus
 
-# Re-solves of a guarded step at most (see PrescribedParams.skin_guard).
-_GUARD_ROUNDS = 5
+# Re-solves of a guarded step's springs at most (see PrescribedParams.skin_guard); as the
+# penalty method's augmentations (tissue.contact.penalty.MAX_AUGMENTATIONS).
+_GUARD_ROUNDS = 10
+# Re-solves of a guarded sliding step whose node set changed at most (see _settled_step).
+_SET_ROUNDS = 3
 # Online mode releases a node at once if the probe would pull it back by more than this [m]
 # in one step (a sudden withdrawal); sliding over the curved skin pulls far less per step.
 _PULL_RELEASE_M = 0.0005
@@ -77,7 +100,10 @@ class PrescribedParams:
             volume bulges between the boundary nodes the method holds -- out of the probe:
             a skin point inside it is pushed out by an augmented-Lagrangian spring solved in
             the same Newton step as the held nodes, the step re-solved until the deepest
-            lies within ``skin_guard_tolerance_m`` (see the module docstring).
+            lies within ``skin_guard_tolerance_m`` and the springs' forces have settled (the
+            penalty method's rounds, :func:`tissue.contact.penalty.augmented_solve`); with
+            ``sliding`` the node set is then settled on the solved step (see the module
+            docstring).
         skin_guard_tolerance_m: how deep a skin point may stay inside the probe [m].
     """
 
@@ -159,8 +185,7 @@ class PrescribedContact(FEContactModel):
     def _reset_tissue(self) -> None:
         super()._reset_tissue()
         if self._guard is not None:
-            self._guard.offsets[:] = 0.0
-            self._guard._offsets_version += 1
+            self._guard.release()
         self._nodes = np.zeros(0, dtype=np.int64)
         self._local = np.zeros((0, 3))
         self._last_reaction = None
@@ -247,7 +272,7 @@ class PrescribedContact(FEContactModel):
             return None if value is None else value.copy()
 
         return {
-            "guard_offsets": None if self._guard is None else self._guard.offsets.copy(),
+            "guard": None if self._guard is None else self._guard.state(),
             "nodes": self._nodes.copy(),
             "local": self._local.copy(),
             "last_reaction": copied(self._last_reaction),
@@ -260,8 +285,7 @@ class PrescribedContact(FEContactModel):
             return None if value is None else np.array(value)
 
         if self._guard is not None:
-            self._guard.offsets[:] = snapshot["guard_offsets"]
-            self._guard._offsets_version += 1
+            self._guard.set_state(snapshot["guard"])
         self._nodes = np.array(snapshot["nodes"], dtype=np.int64)
         self._local = np.array(snapshot["local"], dtype=np.float64)
         self._last_reaction = copied(snapshot["last_reaction"])
@@ -275,24 +299,31 @@ class PrescribedContact(FEContactModel):
         before = self._last_position
         self._step_motion = None if before is None else position - before
         self._last_position = position
+        settled = self.params.sliding and self._guard is not None
         if self.params.sliding:
-            self._update_sliding()
+            self._update_sliding(settled)
         elif self.params.online:
             self._update_online()
         elif self._nodes.size == 0:
             self._capture_offline()
+        planes: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
         if self._nodes.size and self.params.sliding:
             # Each node on the plane tangent to the probe at its nearest surface point.
             positions = self.sim.positions[self._nodes]
             distance, normal = self.probe.signed_distance_world(positions)
-            self.sim.prescribe_normal(self._nodes, positions - distance[:, None] * normal, normal)
+            planes = (positions - distance[:, None] * normal, normal)
+            self.sim.prescribe_normal(self._nodes, *planes)
         elif self._nodes.size:
             self.sim.prescribe(self._nodes, self.probe.to_world_frame(self._local))
         else:
             self.sim.clear_prescribed()
-        guard_rounds = 0
+        guard_rounds = set_rounds = 0
         if self._guard is None:
             result = self.sim.step(dt=h)
+        elif settled:
+            started = time.perf_counter()
+            outcome, guard_rounds, set_rounds = self._settled_step(h, planes)
+            result = self.sim.commit(outcome, h, started)
         else:
             result, guard_rounds = augmented_step(
                 self.sim, self._guard, h, self.params.skin_guard_tolerance_m, _GUARD_ROUNDS
@@ -315,6 +346,7 @@ class PrescribedContact(FEContactModel):
         diagnostics = {
             "guarded_skin_points": guarded,
             "guard_augmentations": guard_rounds,
+            "node_set_rounds": set_rounds,
             "contact_nodes": int(self._nodes.size),
             "newton_iterations": result.newton_iterations,
             "linear_iterations": result.linear_iterations,
@@ -382,10 +414,14 @@ class PrescribedContact(FEContactModel):
         nodes = self.boundary_nodes[~held[self.boundary_nodes]]
         return nodes[self.probe.near(positions[nodes])]
 
-    def _update_sliding(self) -> None:
+    def _update_sliding(self, settled: bool = False) -> None:
         """Frictionless online set: nodes inside the probe's new pose join; a node leaves
         when its (normal) reaction pulls the probe, unless the new pose holds it inside, or
-        at once when the new pose lies more than ``_PULL_RELEASE_M`` clear of it."""
+        at once when the new pose lies more than ``_PULL_RELEASE_M`` clear of it.
+
+        ``settled`` (the skin guarded): a node whose reaction pulled leaves even where the
+        new pose holds it inside, and none joins here: nodes join from the solved step
+        (:meth:`_settled_step`)."""
         positions = self.sim.positions
         nodes = self._nodes
         if nodes.size:
@@ -393,12 +429,71 @@ class PrescribedContact(FEContactModel):
             keep = distance <= _PULL_RELEASE_M
             reaction = self._last_reaction
             if reaction is not None and reaction.shape[0] == nodes.size:
-                keep &= (np.einsum("ij,ij->i", reaction, normal) > 0.0) | (distance < 0.0)
+                pushing = np.einsum("ij,ij->i", reaction, normal) > 0.0
+                keep &= pushing if settled else pushing | (distance < 0.0)
             nodes = nodes[keep]
+        self._local = np.zeros((nodes.size, 3))  # unused: sliding nodes keep no anchor
+        if settled:
+            self._nodes = nodes
+            return
         candidates = self._free_nodes_near_probe(positions)
         distance, _ = self.probe.signed_distance_world(positions[candidates])
         self._nodes = np.union1d(nodes, candidates[distance < 0.0])
-        self._local = np.zeros((self._nodes.size, 3))  # unused: sliding nodes keep no anchor
+        self._local = np.zeros((self._nodes.size, 3))
+
+    def _settled_step(
+        self, h: float, planes: tuple[NDArray[np.float64], NDArray[np.float64]] | None
+    ) -> tuple[StepOutcome, int, int]:
+        """A guarded sliding step of ``h`` [s] whose node set is settled on the solved state
+        (see the module docstring): solved with the guard's springs (not committed); a free
+        boundary node it leaves inside the probe deeper than the guard's tolerance joins, on
+        the plane tangent to the probe at its nearest surface point; a held node whose
+        reaction pulls leaves; after a change the step is solved again from its start, at
+        most ``_SET_ROUNDS`` times. ``planes``: the held nodes' planes (points [m], normals),
+        (k, 3) each, as prescribed. Returns the outcome, the guard's augmentations (all
+        rounds) and the re-solves."""
+        sim, guard = self.sim, self._guard
+        assert guard is not None
+        tolerance = self.params.skin_guard_tolerance_m
+        points, normals = planes if planes is not None else (np.zeros((0, 3)), np.zeros((0, 3)))
+        augmentations = 0
+        for set_round in range(_SET_ROUNDS + 1):
+            outcome, rounds = augmented_solve(sim, guard, h, tolerance, _GUARD_ROUNDS)
+            augmentations += rounds
+            if set_round == _SET_ROUNDS or outcome.status in (
+                StepStatus.DIVERGED,
+                StepStatus.SOLVER_FAILED,
+            ):
+                break
+            solved = outcome.positions
+            nodes = self._nodes
+            keep = np.ones(nodes.size, dtype=bool)
+            if nodes.size:
+                _, normal = self.probe.signed_distance_world(solved[nodes])
+                reaction = outcome.reaction_forces[nodes]
+                keep = np.einsum("ij,ij->i", reaction, normal) > 0.0
+            held = np.zeros(self.mesh.node_count, dtype=bool)
+            held[nodes] = True
+            free = self.boundary_nodes[~held[self.boundary_nodes]]
+            free = free[self.probe.near(solved[free])]
+            distance, normal = self.probe.signed_distance_world(solved[free])
+            entering = distance < -tolerance
+            if keep.all() and not entering.any():
+                break
+            joining = free[entering]
+            nodes = np.concatenate([nodes[keep], joining])
+            points = np.concatenate(
+                [points[keep], solved[joining] - distance[entering, None] * normal[entering]]
+            )
+            normals = np.concatenate([normals[keep], normal[entering]])
+            order = np.argsort(nodes)
+            self._nodes, points, normals = nodes[order], points[order], normals[order]
+            self._local = np.zeros((self._nodes.size, 3))
+            if self._nodes.size:
+                sim.prescribe_normal(self._nodes, points, normals)
+            else:
+                sim.clear_prescribed()
+        return outcome, augmentations, set_round
 
     def _entry_points(
         self,

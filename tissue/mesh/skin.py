@@ -44,9 +44,10 @@ MAX_COLLISION_VERTICES = 200_000
 DRAWN_EDGE_M = 0.004
 #: A surface point lying farther outside its tet than this fraction of the tet's longest
 #: edge is not embedded in the volume (:func:`check_embedded`). The phantom's own surfaces,
-#: curved over a faceted volume, lie at most 0.72 of it outside (the 2,539-tet level, whose
-#: boundary facets are about 31 mm across).
-EMBEDDING_OUTSIDE_FRACTION = 1.0
+#: curved over a faceted volume, lie at most 1.19 of it outside (a 2 mm skin over the
+#: 2,539-tet level, whose boundary facets are about 31 mm across: 13 mm out); a surface in
+#: other units or of another body lies many times farther.
+EMBEDDING_OUTSIDE_FRACTION = 2.0
 #: :func:`refine_surface` splits edges longer than this fraction of the edge length asked
 #: for: the halves of the shortest split edge are then 2/3 of it.
 SPLIT_FRACTION = 4.0 / 3.0

@@ -11,6 +11,11 @@ does not. A matrix that is not node-blocked (a test's Laplacian) is multiplied a
 loops (:mod:`~tissue.sim.solvers.jacobi_cg`, :mod:`~tissue.sim.solvers.factor_cg`) call it
 for every product. :class:`_NodeBlocks` holds the blocks of one pattern; :class:`SymmetricProduct`
 is a product with one fixed matrix (the integrator's rest stiffness, for its damping).
+
+Bits: below :data:`~tissue.sim.solvers.limits.SERIAL_CG_UNKNOWNS` unknowns (where CG runs on
+one thread) a block product is one part, and x . A x is summed in row order, so a product
+gives the same bits whatever the thread count, also when a parallel step calls it. Above, the
+blocks are split in one part per numba thread and the parts' sums follow the thread count.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+import tissue.sim.solvers as solvers
 from tissue.threads import parallel_kernel
 
 
@@ -97,6 +103,8 @@ def _product(
     With node blocks (``upper_ptr`` longer than 1) only the upper 3x3 blocks are read (see
     :class:`_NodeBlocks`): block (b, c) adds B x_c to row b and, off the diagonal, B^T x_b to
     row c, each of the ``partial`` rows summing its own range of node rows. Else plain CSR.
+    With one part, or as CSR, the result is the same bits on any number of threads (x . A x
+    is then summed serially, in row order); with several, the parts' split sets the bits.
     """
     n = out.shape[0]
     if upper_ptr.shape[0] > 1:
@@ -128,6 +136,14 @@ def _product(
                 y[3 * b + 1] += a1
                 y[3 * b + 2] += a2
         total = 0.0
+        if parts == 1:
+            # One part (a small system): x . A x in row order, not a parallel reduction
+            # whose per-thread sums would follow the thread count.
+            y = partial[0]
+            for i in range(n):
+                out[i] = y[i]
+                total += x[i] * y[i]
+            return total
         for i in numba.prange(n):
             acc = 0.0
             for part in range(parts):
@@ -135,13 +151,15 @@ def _product(
             out[i] = acc
             total += x[i] * acc
         return total
-    total = 0.0
     for row in numba.prange(n):
         acc = 0.0
         for k in range(indptr[row], indptr[row + 1]):
             acc += data[k] * x[indices[k]]
         out[row] = acc
-        total += x[row] * acc
+    # x . A x in row order, whatever the thread count (a parallel reduction's would not be).
+    total = 0.0
+    for row in range(n):
+        total += x[row] * out[row]
     return total
 
 
@@ -158,8 +176,9 @@ class _NodeBlocks:
         upper_ptr: the first upper block (column >= row) of each node row, (n / 3 + 1,).
         upper_cols: the first column 3c of each upper block, (number of upper blocks,).
         upper: the upper blocks' values, row-major, 9 per block.
-        bounds: the node rows each part of a product sums, parts + 1 boundaries (one part per
-            numba thread when built, holding about the same number of blocks).
+        bounds: the node rows each part of a product sums, parts + 1 boundaries (one part
+            below :data:`~tissue.sim.solvers.limits.SERIAL_CG_UNKNOWNS` unknowns, else one per
+            numba thread when built; parts hold about the same number of blocks).
         partial: each part's partial result, (parts, n).
     """
 
@@ -171,8 +190,14 @@ class _NodeBlocks:
         count = _count_upper_blocks(indptr, columns, self.upper_ptr)
         self.upper_cols = np.empty(count, dtype=np.int32)
         self.upper = np.empty(9 * count)
-        # One partial result per part; parts hold about the same number of blocks.
-        parts = max(1, min(numba.get_num_threads(), node_count))
+        # One partial result per part; parts hold about the same number of blocks. A system
+        # small enough for CG to run on one thread gets one part: its products then give the
+        # same bits on any number of threads (a split sums each row in pieces, and the pieces
+        # would follow the thread count), and CG's serial products skip summing the parts.
+        if 3 * node_count < solvers.SERIAL_CG_UNKNOWNS:
+            parts = 1
+        else:
+            parts = max(1, min(numba.get_num_threads(), node_count))
         self.bounds = np.searchsorted(self.upper_ptr, np.linspace(0, count, parts + 1))
         self.bounds = np.clip(self.bounds, 0, node_count).astype(np.int64)
         self.bounds[0], self.bounds[-1] = 0, node_count
