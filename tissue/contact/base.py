@@ -521,13 +521,14 @@ class ContactModel(FreeAirSleep, abc.ABC):
         method whatever points the method itself acts on.
 
         A step is ``penetrated`` (:class:`tissue.status.StepStatus`) when a facet lies
-        deeper than its allowance (how deep a facet of its size at rest can cut the probe's
+        deeper than its allowance (how deep a facet of its size can cut the probe's
         rounded edge with its vertices outside,
         :func:`tissue.probe.surface_depth.facet_allowance_m`) plus the method's
         :attr:`penetration_bound_m`: deeper than the method's bound on the points it holds
-        and the skin's resolution together explain. The size at rest, not as deformed: a
-        facet dragged across the probe, its vertices on either side, is the skin passing
-        through it, not a coarse skin."""
+        and the skin's resolution together explain. Its size as deformed, up to twice its
+        size at rest (:data:`tissue.probe.surface_depth.ALLOWED_STRETCH`): a facet dragged
+        across the probe, its vertices on either side, is the skin passing through it, not
+        a coarse skin."""
         return surface_depth(
             self.probe,
             self.skin.positions(self.node_positions),

@@ -59,6 +59,13 @@ REFINE_TOLERANCE_M = 1e-7
 #: Iterations of the projected descent at most.
 REFINE_ITERATIONS = 40
 
+#: Given the rest lengths, a facet's allowance is that of its edge as deformed, up to this
+#: many times its edge at rest: a skin stretched round the probe (the paper's triangles
+#: under a 30 mm press) is excused what its stretched facets can reach with their vertices
+#: held, a facet dragged across the probe (vertices either side, 7 x its rest length under
+#: a jerky policy with penalty at 2 mm) is not.
+ALLOWED_STRETCH = 2.0
+
 #: :meth:`tissue.probe.ProbeShape.compiled_distance` kinds.
 ROUNDED_SLAB = 0
 SPHERE = 1
@@ -88,10 +95,10 @@ class SurfaceDepth:
         depth_m: the deepest point of the surface's facets inside the probe [m], >= 0.
         vertex_depth_m: the deepest of its vertices [m], >= 0 (<= ``depth_m``).
         excess_m: the largest depth of a facet beyond its :func:`facet_allowance_m` [m] (of
-            its longest edge at rest where :func:`surface_depth` is given the rest lengths,
-            else as it is): how much deeper than its resolution explains, were its vertices
-            held out (<= 0 where every facet inside is explained; -inf where none is
-            inside).
+            its longest edge as deformed, capped at :data:`ALLOWED_STRETCH` x its rest length
+            where :func:`surface_depth` is given the rest lengths): how much deeper than
+            its resolution explains, were its vertices held out (<= 0 where every facet
+            inside is explained; -inf where none is inside).
         point_world: that deepest point [m], shape (3,), or None where nothing is inside.
         triangle: the triangle holding it, or -1.
     """
@@ -121,9 +128,10 @@ def surface_depth(
         vertices_world: the surface's vertices [m], shape (vertex_count, 3).
         triangles: vertex indices, shape (triangle_count, 3).
         rest_longest_edge_m: each triangle's longest edge at rest [m], (triangle_count,):
-            the allowances (:func:`facet_allowance_m`) are then the skin's resolution's, not
-            the facets' as deformed (a facet stretched over the probe, its vertices dragged
-            apart, would otherwise excuse its own depth); None: as deformed.
+            the allowances (:func:`facet_allowance_m`) then take a facet's edge as deformed
+            up to :data:`ALLOWED_STRETCH` times its rest length (a facet dragged across the
+            probe, its vertices either side, would otherwise excuse its own depth); None:
+            as deformed.
     """
     vertices = np.ascontiguousarray(vertices_world, dtype=np.float64)
     triangles = np.ascontiguousarray(triangles, dtype=np.int64)
@@ -192,7 +200,7 @@ def _sampled_depth(
     edges = corners - np.roll(corners, 1, axis=1)
     longest = np.sqrt((edges * edges).sum(axis=2).max(axis=1))
     if rest_longest_edge_m is not None:
-        longest = rest_longest_edge_m[candidates]
+        longest = np.minimum(longest, ALLOWED_STRETCH * rest_longest_edge_m[candidates])
     allowance = np.array([facet_allowance_m(L, probe.shape.edge_radius_m) for L in longest])
     per_triangle = -distance.min(axis=1)
     inside = per_triangle > 0.0
@@ -301,7 +309,10 @@ def _depth_kernel(
             ey = corners[0, k, 1] - corners[0, (k + 1) % 3, 1]
             ez = corners[0, k, 2] - corners[0, (k + 1) % 3, 2]
             longest = max(longest, math.sqrt(ex * ex + ey * ey + ez * ez))
-        allowance = _allowance(rest_longest[t] if rest_longest.size else longest, radius)
+        allowed = longest
+        if rest_longest.size:
+            allowed = min(longest, ALLOWED_STRETCH * rest_longest[t])
+        allowance = _allowance(allowed, radius)
         vertex_deepest = max(0.0, -lowest)
         vertex_depth = max(vertex_depth, vertex_deepest)
         if vertex_deepest > depth:
