@@ -296,6 +296,7 @@ def _step_record(result: ContactResult, position: NDArray[np.float64]) -> dict[s
         "force": result.force_world.tolist(),
         "torque": result.torque_world.tolist(),
         "penetration_max_m": result.penetration_max_m,
+        "skin_penetration_m": result.skin_penetration_m,
         "landmarks": result.landmarks.tolist(),
         "status": result.status.value,
         "compute_ms": result.compute_ms,
@@ -312,6 +313,7 @@ def _depth_record(
         # The tissue pushes the probe back: report the normal force as a positive number.
         "force_normal_n": float(-result.force_world @ pressing),
         "penetration_max_m": result.penetration_max_m,
+        "skin_penetration_m": result.skin_penetration_m,
         "landmarks": result.landmarks.tolist(),
         "status": status.value,
     }

@@ -26,8 +26,10 @@ from tissue.profile import profile_choices
 
 #: The study's instability detector: every check of :mod:`tissue.contact.stability` but the
 #: landmark jump, which frictionless contact on the sloped phantom also trips physically
-#: (the tissue slipping out from under the probe); the largest jump is recorded instead.
-STUDY_LIMITS = StabilityLimits(landmark_jump_margin_m=None)
+#: (the tissue slipping out from under the probe; the largest jump is recorded instead), and
+#: the skin's facets in the probe (``penetrated``: a physical failure the paper did not
+#: count; the skin's depth is recorded per depth instead).
+STUDY_LIMITS = StabilityLimits(landmark_jump_margin_m=None, penetrated_is_unstable=False)
 
 # Scenes opened in this process (a worker runs many cells of one scene), by scene and skin.
 _SCENES: dict[tuple[str, float | None], StudyScene] = {}
@@ -96,6 +98,9 @@ def run_cell(spec: StudySpec, cell: Cell, tissue_spec: TissueSpec | None = None)
         "tracked_m": [depth["landmarks"][tracked] for depth in run["depths"]],
         "force_normal_n": [depth["force_normal_n"] for depth in run["depths"]],
         "penetration_max_m": [depth["penetration_max_m"] for depth in run["depths"]],
+        # The skin's facets in the probe (the skin's own measure, judged apart: see
+        # STUDY_LIMITS).
+        "skin_penetration_m": [depth["skin_penetration_m"] for depth in run["depths"]],
         "step_ms": summarise_times(step_ms),
         "landmark_jump_max_m": landmark_jump_beyond_probe(run["steps"]),
         "stability_percent": run["stability_percent"],

@@ -190,7 +190,11 @@ class BreastCompressEnv(ProbeEnv):
 
     ## Version history
 
-    - v0: first release.
+    - v0: first release. Since 2026-12 its skin is at the probe's scale by default
+      (``collision_edge_m=0.002``; a step whose skin lies in the probe beyond what its
+      resolution explains is ``penetrated`` and ends the episode) and its F/T reading is
+      the tissue's wrench at the probe's pose; ``collision_edge_m=None`` presses the paper's
+      1,004 triangles as the earlier published results did.
     """
 
     episode_steps: ClassVar[int] = MAX_EPISODE_STEPS

@@ -107,8 +107,8 @@ MUTATIONS = (
     Mutation(
         "the skin penetration never reported",
         "tissue/contact/base.py",
-        "        return self.probe.deepest_inside_m(self.skin.positions(self.node_positions))",
-        "        return 0.0",
+        "            skin_penetration_m=skin.depth_m,",
+        "            skin_penetration_m=0.0,",
         ("tests/tissue/test_front_door.py", "-k", "623"),
     ),
     Mutation(
@@ -133,9 +133,9 @@ MUTATIONS = (
         ("tests/envs/test_breast_compress.py", "-k", "predicts"),
     ),
     Mutation(
-        "the F/T wrench not tared for the probe's weight",
+        "the F/T wrench not tared for the probe's load",
         "envs/observations.py",
-        "    force = -site_rot @ force_site - weight",
+        "    force = -site_rot @ force_site + load",
         "    force = -site_rot @ force_site",
         ("tests/envs/test_breast_compress.py", "-k", "sensed_wrench and lm"),
     ),
