@@ -156,7 +156,8 @@ def test_a_slow_press_through_the_robot_gives_the_kinematic_force_depth_curve(
     start, rotation = unwrapped.probe_pose()
     pressing = rotation[:, 1]
     per_step = 0.0002 / unwrapped.action_config.max_translation_m
-    reference = tissue.make_tissue(mesh=MESH, contact=contact, profile="robust")
+    # The environment's own tissue (its skin, profile and sleep), driven without the arm.
+    reference = tissue.make_tissue(unwrapped.tissue.spec)
     for depth_mm in (2, 4, 6, 8, 10):
         for _ in range(10):
             env.step(np.array([0.0, per_step, 0.0, 0.0, 0.0, 0.0], dtype=np.float32))
