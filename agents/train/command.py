@@ -11,6 +11,8 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -100,10 +102,25 @@ def run_train(args: argparse.Namespace) -> int:
     if args.ray is not None:
         finals = _on_ray(settings, args.ray, args.command_line)
     else:
+        warning = cores_warning(args.n_envs, os.cpu_count())
+        if warning is not None:
+            print(warning, file=sys.stderr)
         finals = [train(s, command=args.command_line) for s in settings]
     if len(runs) > 1:
         _summarise(settings, finals, out)
     return 0
+
+
+def cores_warning(n_envs: int, cores: int | None) -> str | None:
+    """The warning for more environments than the machine has cores (None: no warning):
+    every environment's worker, and the training's process, then share the cores, and each
+    steps slower than the same run with ``--n-envs`` at most the cores."""
+    if cores is None or n_envs <= cores:
+        return None
+    return (
+        f"warning: --n-envs {n_envs} is more than this machine's {cores} cores: the "
+        f"environments share them, each stepping slower; --n-envs {cores} is as fast or faster"
+    )
 
 
 def _run_name(algo: str, contact: str, seed: int, env_name: str | None = None) -> str:

@@ -4,11 +4,11 @@ One run: ``n_envs`` environments in worker processes (SB3's ``SubprocVecEnv``, s
 ``forkserver``: numba's OpenMP layer makes ``fork`` fatal once a tissue is built; one env runs
 in-process), each under a ``Monitor`` (its CSV in ``monitor/``, success included), the
 observations normalised (``VecNormalize``, the image left alone) unless asked otherwise, an
-evaluation every ``eval_every`` steps on its own env and seeds (SB3's ``EvalCallback``: mean
-return and success rate, ``eval/evaluations.npz``, the best model), checkpoints with their
-normalisation statistics every ``checkpoint_every`` steps, TensorBoard event files in ``tb/``
-and a progress bar. ``config.json`` records everything the run was made from (see
-:mod:`agents.train.artifacts` for the folder's layout).
+evaluation every ``eval_every`` steps on its own envs and seeds, ``n_envs`` workers like the
+training's (SB3's ``EvalCallback``: mean return and success rate, ``eval/evaluations.npz``,
+the best model), checkpoints with their normalisation statistics every ``checkpoint_every``
+steps, TensorBoard event files in ``tb/`` and a progress bar. ``config.json`` records
+everything the run was made from (see :mod:`agents.train.artifacts` for the folder's layout).
 
 Rerun with the same ``--out`` and it resumes from the latest checkpoint (a different
 configuration in that folder is refused: choose another folder). Before the workers start,
@@ -226,6 +226,19 @@ def train(settings: TrainSettings, command: str | None = None, log: Any = print)
     eval_env.step(np.zeros((1, 6), dtype=np.float32))
     vec_cls = SubprocVecEnv if settings.n_envs > 1 else DummyVecEnv
     vec_kwargs = {"start_method": "forkserver"} if settings.n_envs > 1 else None
+    if settings.n_envs > 1:
+        # The evaluations on as many workers as the training (env i: seed + 10,000 + i; SB3
+        # shares the episodes among them): the training's workers wait while it runs, and
+        # on one env in this process it took one core of n.
+        eval_env.close()
+        eval_env = make_vec_env(
+            f"envs:{settings.env_id}",
+            n_envs=settings.n_envs,
+            seed=settings.seed + 10_000,
+            env_kwargs=settings.env_kwargs,
+            vec_env_cls=vec_cls,
+            vec_env_kwargs=vec_kwargs,
+        )
     venv = make_vec_env(
         f"envs:{settings.env_id}",
         n_envs=settings.n_envs,

@@ -50,6 +50,14 @@ def test_bad_numbers_are_refused_before_any_work(option, capsys) -> None:
     assert "expected" in capsys.readouterr().err
 
 
+def test_more_envs_than_cores_is_warned_with_both_numbers() -> None:
+    from agents.train.command import cores_warning
+
+    assert cores_warning(2, 2) is None and cores_warning(8, None) is None
+    warning = cores_warning(5, 2)
+    assert warning is not None and "--n-envs 5" in warning and "2 cores" in warning
+
+
 def test_an_out_that_is_a_file_is_refused(tmp_path: Path, capsys) -> None:
     blocker = tmp_path / "file"
     blocker.write_text("")
