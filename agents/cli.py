@@ -272,6 +272,17 @@ def _build_parser() -> argparse.ArgumentParser:
     env.add_argument("--levels", type=_levels, default=None, help="default 1363,2539")
     env.add_argument("--skin", type=_skins, default=None, help=_SKIN_HELP.format(default="2,paper"))
     env.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
+    train_bench = bench_kinds.add_parser(
+        "train", help="a training step's cost by phase: the scripted press, exploring"
+    )
+    train_bench.add_argument(
+        "--ids", default=None, help="comma-separated env ids; default BreastCompress"
+    )
+    train_bench.add_argument(
+        "--contact", "--methods", dest="methods", default=None, help="comma-separated; default lm"
+    )
+    train_bench.add_argument("--level", type=int, default=1363, help="phantom level (default 1363)")
+    train_bench.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
     sweep = bench_kinds.add_parser("sweep", help="each method's force along a sweep, against LM")
     sweep.add_argument(
         "--seeds", type=seed_list, default=[0, 1, 2, 3, 4], help="comma-separated ForceScan seeds"
@@ -456,6 +467,14 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             args.json,
             command=args.command_line,
             skins=args.skin,
+        )
+        return 0
+    if args.command == "bench" and args.bench == "train":
+        from agents.bench.train import run_train_benchmark
+
+        methods, _ = _methods_and_profiles(parser, args.methods, "robust")
+        run_train_benchmark(
+            _names(args.ids), methods, args.level, args.json, command=args.command_line
         )
         return 0
     if args.command == "bench" and args.bench == "effects":

@@ -203,3 +203,22 @@ def test_bench_sweep_compares_each_method_with_lm_on_the_same_commands(tmp_path:
     assert lm["mean_force_n"] > 0.5  # the sweep pressed
     with pytest.raises(SystemExit):
         main(["bench", "sweep", "--seeds", "zero"])
+
+
+def test_bench_train_times_the_press_and_the_exploring_step(tmp_path: Path) -> None:
+    json_path = tmp_path / "train.json"
+    args = ["bench", "train", "--level", "623"]
+    payload = _run(args, json_path)
+    press, exploring = payload["records"]
+    assert (press["phase"], exploring["phase"]) == ("press", "exploring")
+    for record in (press, exploring):
+        assert record["env_id"] == "probegym/BreastCompress-v0" and record["contact"] == "lm"
+        assert record["tets"] == 571 and record["profile"] == "robust"
+        assert record["collision_edge_m"] == 0.002  # the environments' default skin
+        assert record["steps_per_s"] > 0.0 and record["newton_iterations_mean"] >= 1.0
+        assert 0.0 < record["contact_share"] <= 1.0
+    # PPO's initial spread under probegym train: e^-1.
+    assert exploring["action_std"] == pytest.approx(math.exp(-1.0))
+    ratio = exploring["steps_per_s"] / press["steps_per_s"]
+    assert exploring["exploring_over_press"] == pytest.approx(ratio)
+    assert exploring["meets_target"] == (ratio >= 0.85)
