@@ -86,9 +86,7 @@ def benchmark_env(
         tic = time.perf_counter()
         env.reset(seed=0)
         resets.append(time.perf_counter() - tic)
-    per_step = 0.0002 / unwrapped.action_config.max_translation_m
-    actions = [np.array([0.0, per_step, 0, 0, 0, 0], dtype=np.float32)] * PRESS_STEPS
-    actions += [np.array([per_step, 0.0, 0, 0, 0, 0], dtype=np.float32)] * SLIDE_STEPS
+    actions = scripted_press(unwrapped)
     cpu, wall, parts, statuses = [], [], [], []
     skin_depths, pressing_forces = [], []
     for action in actions:
@@ -146,6 +144,16 @@ def benchmark_env(
         record["meets_target"] = record["steps_per_s"] >= target
     record["meets_reset_target"] = record["reset_ms"] <= TARGET_RESET_MS
     return record
+
+
+def scripted_press(env: Any) -> list[np.ndarray]:
+    """The benchmark's actions for ``env`` (a :class:`envs.probe_env.ProbeEnv`): 40 steps
+    pressing 0.2 mm a step along the probe's axis, then 60 sliding 0.2 mm a step along the
+    image's lateral axis."""
+    per_step = 0.0002 / env.action_config.max_translation_m
+    actions = [np.array([0.0, per_step, 0, 0, 0, 0], dtype=np.float32)] * PRESS_STEPS
+    actions += [np.array([per_step, 0.0, 0, 0, 0, 0], dtype=np.float32)] * SLIDE_STEPS
+    return actions
 
 
 def image_frame_ms(env: Any) -> float:

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from agents.bench.contact import threading_environment
+from agents.bench.env import scripted_press
 from agents.bench.report import BenchRecord, MarkdownTable, write_records
 
 DEFAULT_IDS = ("probegym/BreastCompress-v0",)
@@ -38,8 +39,6 @@ DEFAULT_METHODS = ("lm",)
 DEFAULT_LEVEL = 1363
 #: Exploring steps drawn per record (episodes reset as they end).
 EXPLORING_STEPS = 300
-PRESS_STEPS = 40
-SLIDE_STEPS = 60
 #: The ratio of the exploring step's rate to the press's that the training-speed work aims at.
 TARGET_EXPLORING_OVER_PRESS = 0.85
 
@@ -78,11 +77,8 @@ def press_record(env_id: str, contact: str, level: int) -> dict[str, Any]:
     env = _make(env_id, contact, level)
     unwrapped = env.unwrapped
     env.reset(seed=0)
-    per_step = 0.0002 / unwrapped.action_config.max_translation_m
-    actions = [np.array([0.0, per_step, 0, 0, 0, 0], dtype=np.float32)] * PRESS_STEPS
-    actions += [np.array([per_step, 0.0, 0, 0, 0, 0], dtype=np.float32)] * SLIDE_STEPS
     cpu, iterations = [], []
-    for action in actions:
+    for action in scripted_press(unwrapped):
         tic = time.process_time()
         _, _, terminated, truncated, _ = env.step(action)
         cpu.append(time.process_time() - tic)
