@@ -56,6 +56,28 @@ def _names(text: str | None, parse: Callable[[str], object] | None = None) -> li
     return names
 
 
+def _train_algos(parser: argparse.ArgumentParser, text: str) -> list[str]:
+    """``bench train --algo``'s algorithms (``none``: no train phase)."""
+    from agents.train.run import ALGORITHMS
+
+    if text.strip() == "none":
+        return []
+    algos = _names(text) or []
+    for algo in algos:
+        if algo not in ALGORITHMS:
+            parser.error(
+                f"--algo {algo!r} is not an algorithm; choose from {', '.join(ALGORITHMS)} "
+                "(comma-separated) or none"
+            )
+    return algos
+
+
+def _at_least_one(parser: argparse.ArgumentParser, option: str, value: int) -> int:
+    if value < 1:
+        parser.error(f"{option} must be a whole number >= 1; got {value}")
+    return value
+
+
 def _methods_and_profiles(
     parser: argparse.ArgumentParser, methods: str | None, profiles: str | None
 ) -> tuple[list[str] | None, list[str]]:
@@ -273,7 +295,8 @@ def _build_parser() -> argparse.ArgumentParser:
     env.add_argument("--skin", type=_skins, default=None, help=_SKIN_HELP.format(default="2,paper"))
     env.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
     train_bench = bench_kinds.add_parser(
-        "train", help="a training step's cost by phase: the scripted press, exploring"
+        "train",
+        help="a training step's cost by phase: the scripted press, exploring, probegym train",
     )
     train_bench.add_argument(
         "--ids", default=None, help="comma-separated env ids; default BreastCompress"
@@ -282,6 +305,17 @@ def _build_parser() -> argparse.ArgumentParser:
         "--contact", "--methods", dest="methods", default=None, help="comma-separated; default lm"
     )
     train_bench.add_argument("--level", type=int, default=1363, help="phantom level (default 1363)")
+    train_bench.add_argument(
+        "--algo", default="ppo,sac", help="comma-separated algorithms of the train phase "
+        "(default ppo,sac; none: skip it)",
+    )  # fmt: skip
+    train_bench.add_argument(
+        "--n-envs", type=int, default=2, help="the train phase's worker processes (default 2)"
+    )
+    train_bench.add_argument(
+        "--train-steps", type=int, default=None,
+        help="the train phase's environment steps (default: PPO three updates, SAC 3,000)",
+    )  # fmt: skip
     train_bench.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
     sweep = bench_kinds.add_parser("sweep", help="each method's force along a sweep, against LM")
     sweep.add_argument(
@@ -474,7 +508,16 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
         methods, _ = _methods_and_profiles(parser, args.methods, "robust")
         run_train_benchmark(
-            _names(args.ids), methods, args.level, args.json, command=args.command_line
+            _names(args.ids),
+            methods,
+            args.level,
+            args.json,
+            command=args.command_line,
+            algos=_train_algos(parser, args.algo),
+            n_envs=_at_least_one(parser, "--n-envs", args.n_envs),
+            steps=None
+            if args.train_steps is None
+            else _at_least_one(parser, "--train-steps", args.train_steps),
         )
         return 0
     if args.command == "bench" and args.bench == "effects":

@@ -14,16 +14,26 @@ one environment in this process, records with a ``phase`` key:
   step starts with the probe in contact (``contact_share`` says how many that was), median
   CPU time, with the mean Newton iterations of the tissue's steps beside it.
 
-``exploring_over_press`` is the ratio the training-speed work aims to raise to 0.85.
+- ``train`` (per algorithm of ``--algo``): ``probegym train``'s own code path
+  (:func:`agents.train.run.train`: ``n_envs`` worker processes, ``VecNormalize``, the
+  callbacks) with the run's default hyper-parameters for a fixed number of steps (PPO: three
+  updates' rollouts; SAC: :data:`SAC_STEPS`, two thirds of them with gradient steps), no
+  evaluation falling inside it; environment steps per wall second of the learning loop, and
+  the loop's parts (:mod:`agents.bench.train_timing`: environment steps, transfer between
+  processes, normalisation, policy inference, gradient updates), with ``n_envs`` and the
+  machine's ``cores``.
 
-Limitations: the ``train`` phase (``probegym train``'s own path end to end, with its parts:
-transfers, normalisation, inference, gradient updates) and the replay of a trained policy are
-not measured here yet.
+``exploring_over_press`` is the ratio the training-speed work aims to raise to 0.85;
+``train_over_press`` the end-to-end rate over (environments that have a core each x the
+press's rate), which it aims to raise to 0.75 for PPO.
+
+Limitations: the replay of a trained policy's episode is not measured.
 """
 
 from __future__ import annotations
 
 import os
+import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -42,6 +52,15 @@ DEFAULT_LEVEL = 1363
 EXPLORING_STEPS = 300
 #: The ratio of the exploring step's rate to the press's that the training-speed work aims at.
 TARGET_EXPLORING_OVER_PRESS = 0.85
+#: PPO's end-to-end rate over (environments with a core each x the press's rate) aimed at.
+TARGET_TRAIN_OVER_PRESS = 0.75
+DEFAULT_ALGOS = ("ppo", "sac")
+DEFAULT_N_ENVS = 2
+#: PPO's updates in the ``train`` phase (each after n_steps x n_envs environment steps).
+PPO_UPDATES = 3
+#: SAC's steps in the ``train`` phase: its first 1,000 (``learning_starts``) take no gradient
+#: step, the rest one each.
+SAC_STEPS = 3_000
 
 
 def exploring_spread() -> float:
@@ -103,6 +122,61 @@ def exploring_record(
     return record
 
 
+def train_steps(algo: str, n_envs: int) -> int:
+    """The ``train`` phase's default steps for ``algo`` (see the module docstring)."""
+    from agents.train.run import DEFAULT_HYPERPARAMETERS
+
+    if algo == "ppo":
+        return PPO_UPDATES * int(DEFAULT_HYPERPARAMETERS["ppo"]["n_steps"]) * n_envs
+    return SAC_STEPS
+
+
+def train_record(
+    env_id: str, contact: str, level: int, algo: str, n_envs: int, steps: int | None = None
+) -> dict[str, Any]:
+    """The ``train`` phase (see the module docstring) for one algorithm."""
+    from agents.bench.train_timing import TrainTiming
+    from agents.train.run import DEFAULT_HYPERPARAMETERS, TrainSettings, train
+
+    steps = steps or train_steps(algo, n_envs)
+    # No evaluation inside the timed loop: PPO collects whole rollouts past the budget.
+    rollout = int(DEFAULT_HYPERPARAMETERS["ppo"]["n_steps"]) * n_envs
+    quiet = 10 * max(steps, rollout)
+    timing = TrainTiming()
+    with tempfile.TemporaryDirectory(prefix="probegym-bench-train-") as out:
+        settings = TrainSettings(
+            env_id=env_id,
+            out=Path(out),
+            algo=algo,
+            env_kwargs={"contact": contact, "mesh": level, "profile": "robust"},
+            steps=steps,
+            n_envs=n_envs,
+            seed=0,
+            eval_every=quiet,
+            checkpoint_every=quiet,
+            progress=False,
+        )
+        train(settings, log=lambda _: None, timing=timing)
+    parts = timing.parts()
+    loop_s = parts.pop("loop_s")
+    vector_steps = int(parts.pop("vector_steps"))
+    trained = vector_steps * n_envs
+    probe = _make(env_id, contact, level)
+    record = _identity(probe, env_id, contact, level, "train")
+    probe.close()
+    record |= {
+        "algo": algo,
+        "n_envs": n_envs,
+        "cores": os.cpu_count(),
+        "steps": trained,
+        "loop_s": loop_s,
+        "steps_per_s": trained / loop_s if loop_s > 0 else None,
+        "parts_s": parts,
+        "load_average": list(os.getloadavg()),
+    }
+    return record
+
+
 def _time_steps(
     env: Any, actions: Iterator[np.ndarray], contact_only: bool, next_seed: int | None = None
 ) -> dict[str, Any]:
@@ -158,8 +232,13 @@ def run_train_benchmark(
     level: int,
     json_path: Path,
     command: str | None = None,
+    algos: list[str] | None = None,
+    n_envs: int = DEFAULT_N_ENVS,
+    steps: int | None = None,
 ) -> list[dict[str, Any]]:
-    """Both phases for every id and method; prints a table and writes the JSON as it goes."""
+    """The phases for every id and method (``train`` for each of ``algos``; ``[]``: none);
+    prints the tables and writes the JSON as it goes. ``steps``: the ``train`` phase's
+    environment steps (default :func:`train_steps`)."""
     records: list[dict[str, Any]] = []
     started = time.strftime("%Y-%m-%dT%H:%M:%S")
     provenance = BenchRecord("probegym bench train: a training step's cost, by phase", command)
@@ -176,8 +255,78 @@ def run_train_benchmark(
                 records.append(record)
                 _print(record)
             write_records(json_path, "train", started, records, threads=threading_environment())
-    provenance.write(json_path, [_table(records)])
+            for algo in DEFAULT_ALGOS if algos is None else algos:
+                record = train_record(env_id, contact, level, algo, n_envs, steps)
+                _judge_train(record, press)
+                records.append(record)
+                _print_train(record)
+                write_records(json_path, "train", started, records, threads=threading_environment())
+    provenance.write(json_path, [_table(records), _train_table(records)])
     return records
+
+
+def _judge_train(record: dict[str, Any], press: dict[str, Any]) -> None:
+    """``train_over_press``: the end-to-end rate over (environments with a core each x the
+    press's rate); PPO's verdict against :data:`TARGET_TRAIN_OVER_PRESS`."""
+    rate, press_rate = record["steps_per_s"], press["steps_per_s"]
+    if not (rate and press_rate):
+        return
+    parallel = min(record["n_envs"], record["cores"] or 1)
+    record["press_steps_per_s"] = press_rate
+    record["train_over_press"] = rate / (parallel * press_rate)
+    if record["algo"] == "ppo":
+        record["target_train_over_press"] = TARGET_TRAIN_OVER_PRESS
+        record["meets_target"] = record["train_over_press"] >= TARGET_TRAIN_OVER_PRESS
+
+
+#: The ``train`` record's parts, in the table's order: (key in ``parts_s``, column).
+_PARTS = (
+    ("env_s", "env steps"),
+    ("transfer_s", "transfer"),
+    ("normalisation_s", "normalisation"),
+    ("inference_s", "inference"),
+    ("updates_s", "updates"),
+)
+
+
+def _train_table(records: list[dict[str, Any]]) -> MarkdownTable:
+    table = MarkdownTable(
+        "probegym train end to end: environment steps per wall second of the learning loop, "
+        "and the loop's parts (share of its wall time)",
+        ["env", "contact", "level (tets)", "algo", "n_envs / cores", "steps", "steps/s",
+         *(column for _, column in _PARTS), "tissue (of env steps)",
+         "over n_envs x press (PPO target 0.75)"],
+    )  # fmt: skip
+    for r in records:
+        if r["phase"] != "train":
+            continue
+        parts, loop = r["parts_s"], r["loop_s"]
+        ratio = r.get("train_over_press")
+        verdict = "" if ratio is None else f"{ratio:.2f}"
+        if "meets_target" in r:
+            verdict += f" ({'met' if r['meets_target'] else 'missed'})"
+        env_s = parts["env_s"]
+        table.rows.append([
+            r["env_id"], r["contact"], f"{r['level']} ({r['tets']:,})", r["algo"],
+            f"{r['n_envs']} / {r['cores']}", f"{r['steps']:,}",
+            "-" if r["steps_per_s"] is None else f"{r['steps_per_s']:.0f}",
+            *(f"{100 * parts[key] / loop:.0f} %" for key, _ in _PARTS),
+            f"{100 * parts['env_tissue_s'] / env_s:.0f} %" if env_s > 0 else "-", verdict,
+        ])  # fmt: skip
+    return table
+
+
+def _print_train(record: dict[str, Any]) -> None:
+    parts, loop = record["parts_s"], record["loop_s"]
+    shares = ", ".join(f"{column} {100 * parts[key] / loop:.0f} %" for key, column in _PARTS)
+    ratio = record.get("train_over_press")
+    print(
+        f"{record['env_id']} {record['contact']} level {record['level']} train "
+        f"{record['algo']} ({record['n_envs']} envs): {record['steps']:,} steps in {loop:.0f} s, "
+        f"{record['steps_per_s']:.0f} steps/s ({shares})"
+        + ("" if ratio is None else f"; over n_envs x press {ratio:.2f}"),
+        flush=True,
+    )
 
 
 def _table(records: list[dict[str, Any]]) -> MarkdownTable:
@@ -187,6 +336,8 @@ def _table(records: list[dict[str, Any]]) -> MarkdownTable:
          "Newton iterations", "steps timed", "in contact", "exploring / press (target 0.85)"],
     )  # fmt: skip
     for r in records:
+        if r["phase"] == "train":
+            continue
         edge = r["collision_edge_m"]
         ratio = r.get("exploring_over_press")
         verdict = (

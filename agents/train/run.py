@@ -187,8 +187,15 @@ class TrainSettings:
         return identity
 
 
-def train(settings: TrainSettings, command: str | None = None, log: Any = print) -> Path:
-    """Train (or resume) and save; returns the final model's path."""
+def train(
+    settings: TrainSettings, command: str | None = None, log: Any = print, timing: Any = None
+) -> Path:
+    """Train (or resume) and save; returns the final model's path.
+
+    ``timing``: a benchmark's clocks (:class:`agents.bench.train_timing.TrainTiming`): each
+    worker's env wrapped in its ``env_wrapper``, the vector env in its ``inner`` (below the
+    normalisation) and ``outer`` (above it) wrappers, the evaluation's in its ``mirror`` at
+    both places, its ``callback`` added; None: none."""
     import torch
     from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
@@ -246,9 +253,13 @@ def train(settings: TrainSettings, command: str | None = None, log: Any = print)
         env_kwargs=settings.env_kwargs,
         monitor_dir=str(out / "monitor"),
         monitor_kwargs={"info_keywords": ("is_success",)},
+        wrapper_class=None if timing is None else timing.env_wrapper,
         vec_env_cls=vec_cls,
         vec_env_kwargs=vec_kwargs,
     )
+    if timing is not None:
+        venv = timing.inner(venv)
+        eval_env = timing.mirror(eval_env)
     start = None if resume is not None else _starting_model(settings)
     if settings.normalize:
         keys = [k for k in venv.observation_space.spaces if k != "image"]  # type: ignore[attr-defined]
@@ -264,6 +275,9 @@ def train(settings: TrainSettings, command: str | None = None, log: Any = print)
         eval_env = VecNormalize(
             eval_env, norm_obs=True, norm_reward=False, norm_obs_keys=keys, training=False
         )
+    if timing is not None:
+        venv = timing.outer(venv)
+        eval_env = timing.mirror(eval_env)
     algorithm: Any = {"ppo": PPO, "sac": SAC}[settings.algo]
     hyper = settings.resolved_hyperparameters()
     if resume is not None:
@@ -305,6 +319,7 @@ def train(settings: TrainSettings, command: str | None = None, log: Any = print)
                 deterministic=True,
                 verbose=0,
             ),
+            *([] if timing is None else [timing.callback]),
         ]
     )
     if resume is not None:

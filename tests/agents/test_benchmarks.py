@@ -207,7 +207,7 @@ def test_bench_sweep_compares_each_method_with_lm_on_the_same_commands(tmp_path:
 
 def test_bench_train_times_the_press_and_the_exploring_step(tmp_path: Path) -> None:
     json_path = tmp_path / "train.json"
-    args = ["bench", "train", "--level", "623"]
+    args = ["bench", "train", "--level", "623", "--algo", "none"]
     payload = _run(args, json_path)
     press, exploring = payload["records"]
     assert (press["phase"], exploring["phase"]) == ("press", "exploring")
@@ -222,3 +222,29 @@ def test_bench_train_times_the_press_and_the_exploring_step(tmp_path: Path) -> N
     ratio = exploring["steps_per_s"] / press["steps_per_s"]
     assert exploring["exploring_over_press"] == pytest.approx(ratio)
     assert exploring["meets_target"] == (ratio >= 0.85)
+
+
+@pytest.mark.slow
+def test_bench_train_times_probegym_train_end_to_end(tmp_path: Path) -> None:
+    """The train phase runs probegym train's own path (two worker processes, PPO's one
+    update) and accounts for its loop's wall time by parts."""
+    json_path = tmp_path / "train.json"
+    args = ["bench", "train", "--level", "623", "--algo", "ppo", "--train-steps", "64"]
+    payload = _run(args, json_path)
+    press, _, trained = payload["records"]
+    assert trained["phase"] == "train" and trained["algo"] == "ppo"
+    assert trained["n_envs"] == 2 and trained["cores"] >= 1
+    # PPO collects a whole rollout (1,024 steps per env) before it checks the budget.
+    assert trained["steps"] == 2048
+    parts = trained["parts_s"]
+    assert set(parts) >= {"env_s", "transfer_s", "normalisation_s", "inference_s", "updates_s"}
+    assert all(value >= 0.0 for value in parts.values())
+    assert 0.0 < parts["env_tissue_s"] < parts["env_s"] <= parts["env_steps_summed_s"]
+    named = sum(parts[k] for k in ("env_s", "transfer_s", "normalisation_s", "inference_s"))
+    # The parts add up to the loop (the clamps at zero aside): nothing large is unaccounted.
+    assert named + parts["updates_s"] == pytest.approx(trained["loop_s"], rel=0.05)
+    assert trained["steps_per_s"] == pytest.approx(2048 / trained["loop_s"])
+    ratio = trained["steps_per_s"] / (min(2, trained["cores"]) * press["steps_per_s"])
+    assert trained["train_over_press"] == pytest.approx(ratio)
+    assert trained["meets_target"] == (ratio >= 0.75)
+    assert "probegym train end to end" in json_path.with_suffix(".md").read_text()
