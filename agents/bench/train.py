@@ -23,6 +23,13 @@ one environment in this process, records with a ``phase`` key:
   processes, normalisation, policy inference, gradient updates), with ``n_envs`` and the
   machine's ``cores``.
 
+- ``threads``: whether ``n_envs`` environments would step faster in threads of one process
+  than one after another (the in-process vector environment's premise: the compiled
+  kernels and PARDISO release the GIL): each environment takes :data:`THREAD_STEPS` exploring
+  actions, first one environment after another in this thread, then each in its own thread,
+  fresh environments reset with the same seeds; ``thread_speedup`` is the sequential wall
+  time over the threaded one (``n_envs`` at best, 1 where the step holds the GIL).
+
 ``exploring_over_press`` is the ratio the training-speed work aims to raise to 0.85;
 ``train_over_press`` the end-to-end rate over (environments that have a core each x the
 press's rate), which it aims to raise to 0.75 for PPO.
@@ -61,6 +68,8 @@ PPO_UPDATES = 3
 #: SAC's steps in the ``train`` phase: its first 1,000 (``learning_starts``) take no gradient
 #: step, the rest one each.
 SAC_STEPS = 3_000
+#: Exploring actions per environment in the ``threads`` phase.
+THREAD_STEPS = 100
 
 
 def exploring_spread() -> float:
@@ -107,19 +116,75 @@ def exploring_record(
 ) -> dict[str, Any]:
     """The ``exploring`` phase (see the module docstring): the steps in contact timed."""
     env = _make(env_id, contact, level)
-    rng = np.random.default_rng(seed)
-    spread = exploring_spread()
     low, high = env.action_space.low, env.action_space.high
-    draws = (
-        np.clip(spread * rng.standard_normal(low.shape), low, high).astype(np.float32)
-        for _ in range(steps)
-    )
+    draws = iter(_exploring_actions(low.shape, low, high, seed, steps))
     env.reset(seed=1)
     record = _identity(env, env_id, contact, level, "exploring")
     record |= _time_steps(env, draws, contact_only=True, next_seed=2)
     env.close()
-    record["action_std"] = spread
+    record["action_std"] = exploring_spread()
     return record
+
+
+def _exploring_actions(shape: tuple[int, ...], low: Any, high: Any, seed: int, steps: int):
+    """``steps`` actions as a fresh PPO policy draws them (see the module docstring)."""
+    rng = np.random.default_rng(seed)
+    spread = exploring_spread()
+    return [
+        np.clip(spread * rng.standard_normal(shape), low, high).astype(np.float32)
+        for _ in range(steps)
+    ]
+
+
+def threads_record(
+    env_id: str, contact: str, level: int, n_envs: int, steps: int = THREAD_STEPS
+) -> dict[str, Any]:
+    """The ``threads`` phase (see the module docstring)."""
+    import threading
+
+    def run(env: Any, index: int) -> None:
+        for action in _exploring_actions(shape, low, high, index, steps):
+            _, _, terminated, truncated, _ = env.step(action)
+            if terminated or truncated:
+                env.reset()
+
+    def fresh() -> list[Any]:
+        """The environments, reset and stepped once (warm) before a clock starts."""
+        built = [_make(env_id, contact, level) for _ in range(n_envs)]
+        for index, env in enumerate(built):
+            env.reset(seed=1 + index)
+            env.step(np.zeros(env.action_space.shape, dtype=np.float32))
+        return built
+
+    envs = fresh()
+    low, high = envs[0].action_space.low, envs[0].action_space.high
+    shape = low.shape
+    record = _identity(envs[0], env_id, contact, level, "threads")
+    tic = time.perf_counter()
+    for index, env in enumerate(envs):
+        run(env, index)
+    sequential = time.perf_counter() - tic
+    for env in envs:
+        env.close()
+    envs = fresh()
+    workers = [threading.Thread(target=run, args=(env, i)) for i, env in enumerate(envs)]
+    tic = time.perf_counter()
+    for worker in workers:
+        worker.start()
+    for worker in workers:
+        worker.join()
+    threaded = time.perf_counter() - tic
+    for env in envs:
+        env.close()
+    return record | {
+        "n_envs": n_envs,
+        "cores": os.cpu_count(),
+        "steps_per_env": steps,
+        "sequential_s": sequential,
+        "threaded_s": threaded,
+        "thread_speedup": sequential / threaded,
+        "load_average": list(os.getloadavg()),
+    }
 
 
 def train_steps(algo: str, n_envs: int) -> int:
@@ -255,13 +320,17 @@ def run_train_benchmark(
                 records.append(record)
                 _print(record)
             write_records(json_path, "train", started, records, threads=threading_environment())
+            if n_envs > 1:
+                threads = threads_record(env_id, contact, level, n_envs)
+                records.append(threads)
+                _print_threads(threads)
             for algo in DEFAULT_ALGOS if algos is None else algos:
                 record = train_record(env_id, contact, level, algo, n_envs, steps)
                 _judge_train(record, press)
                 records.append(record)
                 _print_train(record)
                 write_records(json_path, "train", started, records, threads=threading_environment())
-    provenance.write(json_path, [_table(records), _train_table(records)])
+    provenance.write(json_path, [_table(records), _threads_table(records), _train_table(records)])
     return records
 
 
@@ -316,6 +385,34 @@ def _train_table(records: list[dict[str, Any]]) -> MarkdownTable:
     return table
 
 
+def _threads_table(records: list[dict[str, Any]]) -> MarkdownTable:
+    table = MarkdownTable(
+        "environments in threads of one process against one after another (exploring "
+        "actions, wall time)",
+        ["env", "contact", "level (tets)", "n_envs / cores", "steps each", "one after another",
+         "in threads", "speedup (n_envs at best)"],
+    )  # fmt: skip
+    for r in records:
+        if r["phase"] != "threads":
+            continue
+        table.rows.append([
+            r["env_id"], r["contact"], f"{r['level']} ({r['tets']:,})",
+            f"{r['n_envs']} / {r['cores']}", str(r["steps_per_env"]),
+            f"{r['sequential_s']:.2f} s", f"{r['threaded_s']:.2f} s",
+            f"{r['thread_speedup']:.2f}",
+        ])  # fmt: skip
+    return table
+
+
+def _print_threads(record: dict[str, Any]) -> None:
+    print(
+        f"{record['env_id']} {record['contact']} level {record['level']} threads: "
+        f"{record['n_envs']} envs one after another {record['sequential_s']:.2f} s, in threads "
+        f"{record['threaded_s']:.2f} s, speedup {record['thread_speedup']:.2f}",
+        flush=True,
+    )
+
+
 def _print_train(record: dict[str, Any]) -> None:
     parts, loop = record["parts_s"], record["loop_s"]
     shares = ", ".join(f"{column} {100 * parts[key] / loop:.0f} %" for key, column in _PARTS)
@@ -336,7 +433,7 @@ def _table(records: list[dict[str, Any]]) -> MarkdownTable:
          "Newton iterations", "steps timed", "in contact", "exploring / press (target 0.85)"],
     )  # fmt: skip
     for r in records:
-        if r["phase"] == "train":
+        if r["phase"] not in ("press", "exploring"):
             continue
         edge = r["collision_edge_m"]
         ratio = r.get("exploring_over_press")

@@ -227,11 +227,17 @@ def test_bench_train_times_the_press_and_the_exploring_step(tmp_path: Path) -> N
 @pytest.mark.slow
 def test_bench_train_times_probegym_train_end_to_end(tmp_path: Path) -> None:
     """The train phase runs probegym train's own path (two worker processes, PPO's one
-    update) and accounts for its loop's wall time by parts."""
+    update) and accounts for its loop's wall time by parts; the threads phase times two
+    environments in threads against one after another."""
     json_path = tmp_path / "train.json"
     args = ["bench", "train", "--level", "623", "--algo", "ppo", "--train-steps", "64"]
     payload = _run(args, json_path)
-    press, _, trained = payload["records"]
+    press, _, threads, trained = payload["records"]
+    assert threads["phase"] == "threads" and threads["n_envs"] == 2
+    assert threads["steps_per_env"] == 100 and threads["threaded_s"] > 0.0
+    assert threads["thread_speedup"] == pytest.approx(
+        threads["sequential_s"] / threads["threaded_s"]
+    )
     assert trained["phase"] == "train" and trained["algo"] == "ppo"
     assert trained["n_envs"] == 2 and trained["cores"] >= 1
     # PPO collects a whole rollout (1,024 steps per env) before it checks the budget.
