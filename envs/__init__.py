@@ -13,6 +13,7 @@ Importing this package registers the environments::
 | ``probegym/BreastCompress-v0`` | compress the breast until a lesion reaches a depth in the image |
 | ``probegym/LesionSearch-v0`` | find a lesion, centre it in the image, hold the force in a band |
 | ``probegym/ForceScan-v0`` | sweep a line on the skin, the force in a band, the face normal to it |
+| ``probegym/LesionSearch-v1`` | v0's task with a shaped reward, the sweep observed, 2 mm a step |
 
 Every task takes ``domain_randomization=True`` (or a dict, or a :class:`DomainRandomization`):
 tissue and lesion stiffness, lesion placement, F/T noise and bias, probe pose noise, drawn
@@ -28,7 +29,12 @@ from envs.tasks.breast_compress import MAX_EPISODE_STEPS as _COMPRESS_STEPS
 from envs.tasks.force_scan import MAX_EPISODE_STEPS as _SCAN_STEPS
 from envs.tasks.lesion_search import MAX_EPISODE_STEPS as _SEARCH_STEPS
 
-ENV_IDS = ("probegym/BreastCompress-v0", "probegym/LesionSearch-v0", "probegym/ForceScan-v0")
+ENV_IDS = (
+    "probegym/BreastCompress-v0",
+    "probegym/LesionSearch-v0",
+    "probegym/ForceScan-v0",
+    "probegym/LesionSearch-v1",
+)
 
 
 def _register() -> None:
@@ -49,6 +55,13 @@ def _register() -> None:
             id="probegym/ForceScan-v0",
             entry_point="envs.tasks.force_scan:ForceScanEnv",
             max_episode_steps=_SCAN_STEPS,
+        )
+
+    if "probegym/LesionSearch-v1" not in gym.registry:
+        gym.register(
+            id="probegym/LesionSearch-v1",
+            entry_point="envs.tasks.lesion_search_v1:LesionSearchV1Env",
+            max_episode_steps=_SEARCH_STEPS,
         )
 
 

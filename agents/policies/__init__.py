@@ -1,16 +1,21 @@
 """Scripted policies: controllers written by hand that solve the tasks (baselines, tests,
 demonstrations)."""
 
+from collections.abc import Callable
+from typing import Any
+
 from agents.policies.compression import CompressionPolicy
 from agents.policies.force_scan import ForceScanPolicy
-from agents.policies.lesion_search import LesionSearchPolicy
+from agents.policies.lesion_search import LesionSearchPolicy, lesion_search_v1_policy
 from agents.policies.random_policy import RandomPolicy
 
-#: Each environment's scripted policy class (``probegym evaluate ENV --policy scripted``).
-SCRIPTED_POLICIES: dict[str, type] = {
+#: Each environment's scripted policy: a class or function that makes one (``probegym
+#: evaluate ENV --policy scripted``).
+SCRIPTED_POLICIES: dict[str, Callable[[], Any]] = {
     "probegym/BreastCompress-v0": CompressionPolicy,
     "probegym/LesionSearch-v0": LesionSearchPolicy,
     "probegym/ForceScan-v0": ForceScanPolicy,
+    "probegym/LesionSearch-v1": lesion_search_v1_policy,
 }
 
 __all__ = [

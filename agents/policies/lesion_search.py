@@ -1,4 +1,4 @@
-"""A scripted policy for ``probegym/LesionSearch-v0``: press, sweep, centre, hold.
+"""A scripted policy for ``probegym/LesionSearch-v0`` and v1: press, sweep, centre, hold.
 
 Reads only the policy's observation: the F/T wrench (the one on the probe from outside, in
 the probe frame, so the tissue pushing back reads negative along +y: the normal force is
@@ -22,6 +22,15 @@ from numpy.typing import NDArray
 
 #: The environment's translation at action 1 [m per step] (``max_translation_m``).
 MAX_TRANSLATION_M = 0.005
+#: And its rotation [rad per step] (``max_rotation_rad``), which the gains were tuned for.
+MAX_ROTATION_RAD = 0.05
+
+
+def lesion_search_v1_policy() -> LesionSearchPolicy:
+    """The scripted policy for ``probegym/LesionSearch-v1`` (2 mm and 0.02 rad a step)."""
+    from envs.tasks.lesion_search_v1 import V1_MAX_ROTATION_RAD, V1_MAX_TRANSLATION_M
+
+    return LesionSearchPolicy.for_scale(V1_MAX_TRANSLATION_M, V1_MAX_ROTATION_RAD)
 
 
 @dataclass
@@ -60,6 +69,26 @@ class LesionSearchPolicy:
     max_translation_m: float = MAX_TRANSLATION_M
     _travelled_m: float = field(default=0.0, init=False, repr=False)
     _direction: float = field(default=0.0, init=False, repr=False)
+
+    @classmethod
+    def for_scale(cls, max_translation_m: float, max_rotation_rad: float) -> LesionSearchPolicy:
+        """The policy for an environment whose action moves the probe ``max_translation_m``
+        [m] and turns it ``max_rotation_rad`` [rad] at 1: the same motions in metres and
+        radians as the defaults make at v0's 5 mm and 0.05 rad (gains and limits rescaled,
+        limits at most 1)."""
+        move = MAX_TRANSLATION_M / max_translation_m
+        turn = MAX_ROTATION_RAD / max_rotation_rad
+        base = cls()
+        return cls(
+            force_gain=base.force_gain * move,
+            max_press_action=min(1.0, base.max_press_action * move),
+            sweep_action=min(1.0, base.sweep_action * move),
+            centre_gain=base.centre_gain * move,
+            max_centre_action=min(1.0, base.max_centre_action * move),
+            align_gain=base.align_gain * turn,
+            max_align_action=min(1.0, base.max_align_action * turn),
+            max_translation_m=max_translation_m,
+        )
 
     def reset(self) -> None:
         """Forget the sweep (call at each episode's start)."""
