@@ -183,7 +183,7 @@ def summary_markdown(summary: dict[str, Any], written: list[Path]) -> str:
         ]
     )
     table.rows.append(["normal force", f"mean {summary['normal_force_mean_n']:.3f} N"])
-    if env_id.endswith("LesionSearch-v0"):
+    if "/LesionSearch-" in env_id:
         table.rows.append(
             [
                 "centring error at the end",

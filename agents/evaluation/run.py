@@ -125,8 +125,9 @@ def resolve_policy(
         trained_on = trained.config.get("env_id")
         if trained_on != env_id:
             raise ConfigError(
-                f"--policy {policy} was trained on {trained_on!r}, not {env_id!r}; evaluate "
-                f"it on {trained_on} (or give a model trained on {env_id})"
+                f"--policy {policy} was trained on {trained_on!r}, not {env_id!r}"
+                + _versions_differ(trained, str(trained_on), env_id, kwargs)
+                + f"; evaluate it on {trained_on} (or give a model trained on {env_id})"
             )
         merged = dict(trained.config.get("env_kwargs") or {})
         merged.update(kwargs)
@@ -317,3 +318,40 @@ def without_timings(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
         {key: value for key, value in record.items() if not key.startswith(TIMING_PREFIX)}
         for record in records
     ]
+
+
+def _versions_differ(trained: Any, trained_on: str, env_id: str, env_kwargs: dict[str, Any]) -> str:
+    """For a model of another version of ``env_id``'s task whose observation space differs
+    from ``env_id``'s (v1 observes more than v0), a clause naming both; else nothing (other
+    tasks are refused by their ids alone, before any environment is built)."""
+    model = getattr(trained, "model", None)
+    if model is None or trained_on.rsplit("-v", 1)[0] != env_id.rsplit("-v", 1)[0]:
+        return ""
+    return _spaces_differ(model.observation_space, env_id, env_kwargs)
+
+
+def _spaces_differ(trained_space: Any, env_id: str, env_kwargs: dict[str, Any]) -> str:
+    """A clause naming a model's observation space and ``env_id``'s where they differ."""
+    import gymnasium as gym
+
+    import envs  # noqa: F401 - registers the ids
+
+    env = gym.make(env_id, **env_kwargs)
+    try:
+        wanted = env.observation_space
+    finally:
+        env.close()
+    if wanted == trained_space:
+        return ""
+    return (
+        f": the model observes {_describe_space(trained_space)}, {env_id} gives "
+        f"{_describe_space(wanted)}"
+    )
+
+
+def _describe_space(space: Any) -> str:
+    """A Dict space as ``{key (shape), ...}``; another as itself."""
+    inner = getattr(space, "spaces", None)
+    if not isinstance(inner, dict):
+        return str(space)
+    return "{" + ", ".join(f"{key} {tuple(box.shape)}" for key, box in inner.items()) + "}"

@@ -108,7 +108,7 @@ def test_the_numbers_are_those_of_the_env_run_directly(evaluation) -> None:
     assert record["contact_force_peak_n"] == direct["peak"]
     info = direct["info"]
     assert record["success"] == info["is_success"]
-    if env_id == "probegym/LesionSearch-v0":
+    if env_id.startswith("probegym/LesionSearch-"):
         assert record["centring_error_m"] == abs(info["lesion_lateral_m"])
     elif env_id == "probegym/BreastCompress-v0":
         expected = abs(info["lesion_depth_m"] - info["target_depth_m"])
@@ -252,6 +252,23 @@ def test_a_trained_policy_brings_its_env_and_refuses_another(monkeypatch, tmp_pa
     _refuse_work(monkeypatch)
     with pytest.raises(ConfigError, match=r"trained on 'probegym/LesionSearch-v0', not"):
         evaluate("probegym/ForceScan-v0", tmp_path, 1, 0, {}, tmp_path / "o")
+
+
+def test_a_model_of_another_version_is_refused_naming_both_spaces(monkeypatch, tmp_path) -> None:
+    import agents.train
+
+    v0 = gym.make("probegym/LesionSearch-v0")
+    trained = _FakeTrained({"env_id": "probegym/LesionSearch-v0", "env_kwargs": {}})
+    trained.model = type("Model", (), {"observation_space": v0.observation_space})()  # type: ignore[attr-defined]
+    v0.close()
+    monkeypatch.setattr(agents.train, "load_policy", lambda path: trained)
+    with pytest.raises(ConfigError) as refused:
+        evaluate("probegym/LesionSearch-v1", tmp_path, 1, 0, {}, tmp_path / "o")
+    message = str(refused.value)
+    assert "trained on 'probegym/LesionSearch-v0', not 'probegym/LesionSearch-v1'" in message
+    observed, given = message.split("the model observes ")[1].split(", probegym/LesionSearch-v1")
+    assert "lesion (4,)" in observed and "last_action" not in observed
+    assert "last_action (6,)" in given and "scan_extent (2,)" in given
 
 
 def test_each_task_has_its_centring_figure() -> None:

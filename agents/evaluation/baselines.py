@@ -1,0 +1,195 @@
+"""Baseline records: trained runs, the scripted and the random policy on held-out episodes.
+
+::
+
+    python -m agents.evaluation.baselines --runs runs/ls1/ppo-lm-seed0 ... \\
+        --policies scripted,random --ids probegym/LesionSearch-v1 \\
+        --episodes 50 --seed 1000 --json docs/results/baselines.json
+
+One record per trained run (its final model) and per task and chosen policy, with the keys
+``env_id``, ``algo`` (None for a hand-written policy), ``policy`` (``ppo``, ``sac``,
+``scripted``, ``random``), ``seed`` (the training's; None for a hand-written policy),
+``steps`` (environment steps trained), ``heldout_success`` (the share of ``--episodes``
+episodes reset with seeds ``--seed`` ... that succeeded; the training used seeds S + i
+and its evaluations S + 10,000 + i, so choose seeds far from both), ``heldout_episodes``,
+``heldout_interval`` (Wilson, 95 %), ``wall_s`` (the training's wall time: the latest
+episode end in its ``monitor/`` files, evaluations included), ``steps_per_s`` (``steps``
+over it), ``steps_to_80`` (the first training evaluation at 80 % success or more; None if
+none), ``defaults`` (true when the run added no keyword argument, pre-training or initial
+model) and ``command`` (what reproduces the record). Records already in the JSON for other
+(env, policy, seed) stay; the same ones are replaced.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents.evaluation.report import wilson_interval
+from agents.evaluation.run import evaluate
+from agents.outputs import write_json
+from agents.train.artifacts import read_config
+
+#: The training evaluations' success that ``steps_to_80`` looks for.
+TARGET_SUCCESS = 0.8
+
+
+def run_record(folder: Path, episodes: int, seed: int) -> dict[str, Any]:
+    """The record of one ``probegym train`` folder (see the module docstring)."""
+    config = read_config(folder)
+    records = _held_out(str(config["env_id"]), folder, episodes, seed)
+    steps = _trained_steps(folder)
+    wall = _wall_s(folder)
+    defaults = _defaults(config)
+    return _record(config["env_id"], config["algo"], config["algo"], config["seed"], records) | {
+        "steps": steps,
+        "wall_s": wall,
+        "steps_per_s": steps / wall if steps and wall else None,
+        "steps_to_80": _steps_to(folder, TARGET_SUCCESS),
+        "defaults": bool(defaults),
+        "command": config.get("command"),
+        "model": str(folder),
+    }
+
+
+def policy_record(env_id: str, policy: str, episodes: int, seed: int) -> dict[str, Any]:
+    """The record of a hand-written policy (``scripted`` or ``random``) on ``env_id``."""
+    records = _held_out(env_id, policy, episodes, seed)
+    return _record(env_id, None, policy, None, records) | {
+        "steps": 0,
+        "wall_s": None,
+        "steps_per_s": None,
+        "steps_to_80": None,
+        "defaults": True,
+        "command": f"probegym evaluate {env_id} --policy {policy} --episodes {episodes} "
+        f"--seed {seed}",
+    }
+
+
+def _held_out(env_id: str, policy: Any, episodes: int, seed: int) -> list[dict[str, Any]]:
+    with tempfile.TemporaryDirectory(prefix="probegym-baselines-") as out:
+        return evaluate(env_id, policy, episodes, seed, {}, Path(out))
+
+
+def _record(
+    env_id: str, algo: str | None, policy: str, seed: int | None, records: list[dict[str, Any]]
+) -> dict[str, Any]:
+    successes = sum(bool(r["success"]) for r in records)
+    low, high = wilson_interval(successes, len(records))
+    return {
+        "env_id": env_id,
+        "algo": algo,
+        "policy": policy,
+        "seed": seed,
+        "heldout_success": successes / len(records),
+        "heldout_successes": successes,
+        "heldout_episodes": len(records),
+        "heldout_interval": [low, high],
+        "heldout_seeds": [int(records[0]["seed"]), int(records[-1]["seed"])],
+    }
+
+
+#: The environment arguments ``probegym train`` passes when none are given.
+DEFAULT_ENV_KWARGS = {"contact": "lm", "mesh": 1363, "profile": "robust"}
+
+
+def _defaults(config: dict[str, Any]) -> bool:
+    """Whether a run used the defaults only: the environment's default arguments, no
+    hyper-parameter, pre-training or initial model of its own, normalisation on."""
+    settings = config.get("settings") or {}
+    env_kwargs = config.get("env_kwargs") or {}
+    return (
+        all(env_kwargs.get(key, value) == value for key, value in DEFAULT_ENV_KWARGS.items())
+        and set(env_kwargs) <= set(DEFAULT_ENV_KWARGS)
+        and not settings.get("hyperparameters")
+        and not config.get("init_from")
+        and not config.get("pretrain_episodes")
+        and bool(config.get("normalize", True))
+    )
+
+
+def _trained_steps(folder: Path) -> int:
+    steps = [
+        int(path.stem.split("_")[-2]) for path in (folder / "checkpoints").glob("model_*_steps.zip")
+    ]
+    return max(steps, default=0)
+
+
+def _wall_s(folder: Path) -> float | None:
+    """The latest episode end [s after the monitor's start] over the run's monitor files."""
+    ends = []
+    for path in (folder / "monitor").glob("*.monitor.csv"):
+        lines = path.read_text().splitlines()[2:]
+        if lines:
+            ends.append(max(float(line.split(",")[2]) for line in lines if line))
+    return max(ends) if ends else None
+
+
+def _steps_to(folder: Path, target: float) -> int | None:
+    log = folder / "eval" / "evaluations.npz"
+    if not log.is_file():
+        return None
+    data = np.load(log)
+    if "successes" not in data:
+        return None
+    for steps, successes in zip(data["timesteps"], data["successes"], strict=True):
+        if float(np.mean(successes)) >= target:
+            return int(steps)
+    return None
+
+
+def merge(path: Path, new: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The records in ``path`` (if any) with ``new`` replacing those of the same env,
+    policy and seed."""
+    old: list[dict[str, Any]] = []
+    if path.is_file():
+        old = json.loads(path.read_text())["records"]
+    keys = {(r["env_id"], r["policy"], r["seed"]) for r in new}
+    kept = [r for r in old if (r["env_id"], r["policy"], r["seed"]) not in keys]
+    return kept + new
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m agents.evaluation.baselines")
+    parser.add_argument("--runs", nargs="*", type=Path, default=[], help="probegym train folders")
+    parser.add_argument("--ids", default="", help="comma-separated env ids for --policies")
+    parser.add_argument("--policies", default="", help="comma-separated: scripted, random")
+    parser.add_argument("--episodes", type=int, default=50)
+    parser.add_argument("--seed", type=int, default=1000, help="the first held-out seed")
+    parser.add_argument("--json", type=Path, default=Path("docs/results/baselines.json"))
+    args = parser.parse_args(argv)
+    if args.episodes < 1 or args.seed < 0:
+        parser.error(f"--episodes must be >= 1 and --seed >= 0; got {args.episodes}, {args.seed}")
+    policies = [p for p in args.policies.split(",") if p]
+    for policy in policies:
+        if policy not in ("scripted", "random"):
+            parser.error(f"--policies takes scripted and random; got {policy!r}")
+    records = []
+    for folder in args.runs:
+        records.append(run_record(folder, args.episodes, args.seed))
+        _print(records[-1])
+    for env_id in (i for i in args.ids.split(",") if i):
+        for policy in policies:
+            records.append(policy_record(env_id, policy, args.episodes, args.seed))
+            _print(records[-1])
+    write_json({"records": merge(args.json, records)}, args.json, indent=1)
+    return 0
+
+
+def _print(record: dict[str, Any]) -> None:
+    low, high = record["heldout_interval"]
+    print(
+        f"{record['env_id']} {record['policy']} seed {record['seed']}: "
+        f"{record['heldout_successes']}/{record['heldout_episodes']} held out "
+        f"({low:.0%}-{high:.0%}), {record['steps']:,} steps",
+        flush=True,
+    )
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

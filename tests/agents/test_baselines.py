@@ -1,0 +1,78 @@
+"""The baseline records' pieces: which runs used the defaults, steps to 80 %, wall time, and
+how new records replace old ones."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agents.evaluation.baselines import _defaults, _steps_to, _wall_s, merge, policy_record
+
+
+def _config(**changes) -> dict:
+    config = {
+        "env_kwargs": {"contact": "lm", "mesh": 1363, "profile": "robust"},
+        "settings": {"hyperparameters": {}},
+        "normalize": True,
+    }
+    config.update(changes)
+    return config
+
+
+@pytest.mark.parametrize(
+    ("changes", "expected"),
+    [
+        ({}, True),
+        ({"env_kwargs": {"contact": "lm"}}, True),
+        ({"env_kwargs": {"contact": "penalty", "mesh": 1363, "profile": "robust"}}, False),
+        ({"env_kwargs": {"contact": "lm", "mesh": 1363, "max_translation_m": 0.002}}, False),
+        ({"settings": {"hyperparameters": {"n_steps": 512}}}, False),
+        ({"init_from": "runs/x"}, False),
+        ({"pretrain_episodes": 20}, False),
+        ({"normalize": False}, False),
+    ],
+)
+def test_only_runs_with_the_defaults_are_marked_so(changes: dict, expected: bool) -> None:
+    assert _defaults(_config(**changes)) is expected
+
+
+def test_steps_to_80_is_the_first_evaluation_at_80_percent(tmp_path: Path) -> None:
+    (tmp_path / "eval").mkdir()
+    successes = np.array([[0] * 10, [1] * 7 + [0] * 3, [1] * 8 + [0] * 2, [1] * 10])
+    np.savez(tmp_path / "eval" / "evaluations.npz", timesteps=[10, 20, 30, 40], successes=successes)
+    assert _steps_to(tmp_path, 0.8) == 30
+    assert _steps_to(tmp_path, 1.0) == 40
+    np.savez(tmp_path / "eval" / "evaluations.npz", timesteps=[10], successes=successes[:1])
+    assert _steps_to(tmp_path, 0.8) is None
+
+
+def test_wall_time_is_the_latest_episode_end_over_the_monitors(tmp_path: Path) -> None:
+    (tmp_path / "monitor").mkdir()
+    header = '#{"t_start": 0.0}\nr,l,t,is_success\n'
+    (tmp_path / "monitor" / "0.monitor.csv").write_text(header + "1,10,5.5,0\n2,10,40.25,1\n")
+    (tmp_path / "monitor" / "1.monitor.csv").write_text(header + "1,10,39.0,1\n")
+    assert _wall_s(tmp_path) == 40.25
+
+
+def test_new_records_replace_the_same_runs_only(tmp_path: Path) -> None:
+    path = tmp_path / "baselines.json"
+    old = [
+        {"env_id": "a", "policy": "ppo", "seed": 0, "heldout_success": 0.5},
+        {"env_id": "a", "policy": "ppo", "seed": 1, "heldout_success": 0.6},
+    ]
+    path.write_text(json.dumps({"records": old}))
+    new = [{"env_id": "a", "policy": "ppo", "seed": 1, "heldout_success": 0.9}]
+    merged = merge(path, new)
+    assert [r["heldout_success"] for r in merged] == [0.5, 0.9]
+
+
+def test_a_hand_written_policy_is_a_record_with_its_command() -> None:
+    record = policy_record("probegym/LesionSearch-v1", "scripted", 2, 1000)
+    assert record["heldout_successes"] == 2 and record["heldout_episodes"] == 2
+    assert record["heldout_seeds"] == [1000, 1001] and record["algo"] is None
+    low, high = record["heldout_interval"]
+    assert low < 1.0 == high
+    assert record["command"].startswith("probegym evaluate probegym/LesionSearch-v1")
