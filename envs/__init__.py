@@ -14,6 +14,7 @@ Importing this package registers the environments::
 | ``probegym/LesionSearch-v0`` | find a lesion, centre it in the image, hold the force in a band |
 | ``probegym/ForceScan-v0`` | sweep a line on the skin, the force in a band, the face normal to it |
 | ``probegym/LesionSearch-v1`` | v0's task with a shaped reward, the sweep observed, 2 mm a step |
+| ``probegym/ForceScan-v1`` | v0's task with a shaped reward, the force's history, 2 mm a step |
 
 Every task takes ``domain_randomization=True`` (or a dict, or a :class:`DomainRandomization`):
 tissue and lesion stiffness, lesion placement, F/T noise and bias, probe pose noise, drawn
@@ -34,6 +35,7 @@ ENV_IDS = (
     "probegym/LesionSearch-v0",
     "probegym/ForceScan-v0",
     "probegym/LesionSearch-v1",
+    "probegym/ForceScan-v1",
 )
 
 
@@ -62,6 +64,13 @@ def _register() -> None:
             id="probegym/LesionSearch-v1",
             entry_point="envs.tasks.lesion_search_v1:LesionSearchV1Env",
             max_episode_steps=_SEARCH_STEPS,
+        )
+
+    if "probegym/ForceScan-v1" not in gym.registry:
+        gym.register(
+            id="probegym/ForceScan-v1",
+            entry_point="envs.tasks.force_scan_v1:ForceScanV1Env",
+            max_episode_steps=_SCAN_STEPS,
         )
 
 

@@ -5,7 +5,7 @@ from collections.abc import Callable
 from typing import Any
 
 from agents.policies.compression import CompressionPolicy
-from agents.policies.force_scan import ForceScanPolicy
+from agents.policies.force_scan import ForceScanPolicy, force_scan_v1_policy
 from agents.policies.lesion_search import LesionSearchPolicy, lesion_search_v1_policy
 from agents.policies.random_policy import RandomPolicy
 
@@ -16,6 +16,7 @@ SCRIPTED_POLICIES: dict[str, Callable[[], Any]] = {
     "probegym/LesionSearch-v0": LesionSearchPolicy,
     "probegym/ForceScan-v0": ForceScanPolicy,
     "probegym/LesionSearch-v1": lesion_search_v1_policy,
+    "probegym/ForceScan-v1": force_scan_v1_policy,
 }
 
 __all__ = [

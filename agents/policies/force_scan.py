@@ -210,3 +210,10 @@ class ForceScanPolicy:
             action[3:].astype(np.float64) * self.max_rotation_rad
         )
         return action
+
+
+def force_scan_v1_policy() -> ForceScanPolicy:
+    """The scripted policy for ``probegym/ForceScan-v1`` (2 mm a step at full action)."""
+    from envs.tasks.force_scan_v1 import V1_MAX_TRANSLATION_M
+
+    return ForceScanPolicy(max_translation_m=V1_MAX_TRANSLATION_M)
