@@ -162,6 +162,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--seed", type=int, default=1000, help="the first held-out seed")
     parser.add_argument("--json", type=Path, default=Path("docs/results/baselines.json"))
+    parser.add_argument(
+        "--markdown", type=Path, default=None, help="also write the JSON's table here"
+    )
     args = parser.parse_args(argv)
     if args.episodes < 1 or args.seed < 0:
         parser.error(f"--episodes must be >= 1 and --seed >= 0; got {args.episodes}, {args.seed}")
@@ -177,8 +180,37 @@ def main(argv: list[str] | None = None) -> int:
         for policy in policies:
             records.append(policy_record(env_id, policy, args.episodes, args.seed))
             _print(records[-1])
-    write_json({"records": merge(args.json, records)}, args.json, indent=1)
+    merged = merge(args.json, records)
+    write_json({"records": merged}, args.json, indent=1)
+    if args.markdown is not None:
+        args.markdown.write_text(table(merged))
     return 0
+
+
+def table(records: list[dict[str, Any]]) -> str:
+    """The records as a Markdown table, by task, then policy, then seed."""
+    lines = [
+        "| env | policy | seed | defaults | steps | steps to 80 % (training evaluations) "
+        "| held-out success (95 % Wilson) | wall time | steps/s |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    order = {"ppo": 0, "sac": 1, "scripted": 2, "random": 3}
+    for r in sorted(
+        records, key=lambda r: (r["env_id"], order.get(r["policy"], 9), r["seed"] or 0)
+    ):
+        low, high = r["heldout_interval"]
+        wall = r.get("wall_s")
+        rate = r.get("steps_per_s")
+        to_80 = r.get("steps_to_80")
+        lines.append(
+            f"| {r['env_id']} | {r['policy']} | {'-' if r['seed'] is None else r['seed']} "
+            f"| {'yes' if r['defaults'] else 'no'} | {r['steps']:,} "
+            f"| {'-' if to_80 is None else f'{to_80:,}'} "
+            f"| {r['heldout_successes']}/{r['heldout_episodes']} ({low:.0%}-{high:.0%}) "
+            f"| {'-' if wall is None else f'{wall / 60:.0f} min'} "
+            f"| {'-' if rate is None else f'{rate:.0f}'} |"
+        )
+    return "\n".join(lines) + "\n"
 
 
 def _print(record: dict[str, Any]) -> None:

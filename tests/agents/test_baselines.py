@@ -76,3 +76,19 @@ def test_a_hand_written_policy_is_a_record_with_its_command() -> None:
     low, high = record["heldout_interval"]
     assert low < 1.0 == high
     assert record["command"].startswith("probegym evaluate probegym/LesionSearch-v1")
+
+
+def test_the_table_has_a_row_per_record_in_order() -> None:
+    from agents.evaluation.baselines import table
+
+    base = {"defaults": True, "steps": 0, "heldout_episodes": 50, "wall_s": None}
+    records = [
+        base | {"env_id": "b", "policy": "random", "seed": None, "heldout_successes": 0,
+                "heldout_interval": [0.0, 0.07]},
+        base | {"env_id": "b", "policy": "ppo", "seed": 1, "heldout_successes": 45,
+                "heldout_interval": [0.79, 0.96], "steps": 100_352, "steps_to_80": 20_000,
+                "wall_s": 900.0, "steps_per_s": 111.5},
+    ]  # fmt: skip
+    rows = table(records).splitlines()[2:]
+    assert rows[0].startswith("| b | ppo | 1 | yes | 100,352 | 20,000 | 45/50 (79%-96%) | 15 min")
+    assert rows[1].startswith("| b | random | - | yes | 0 | - | 0/50 (0%-7%) | - | - |")
