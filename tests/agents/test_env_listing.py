@@ -24,6 +24,8 @@ def test_the_listing_matches_what_can_be_made(
         "probegym/BreastCompress-v0",
         "probegym/LesionSearch-v0",
         "probegym/ForceScan-v0",
+        "probegym/LesionSearch-v1",
+        "probegym/ForceScan-v1",
     }
     for row in listing["environments"]:
         assert row["id"] in printed
