@@ -37,8 +37,8 @@ class ForceScanV1Config(ForceScanConfig):
         shaping_gamma: the gamma of the shaping term gamma Phi(s') - Phi(s) (1: see
             :class:`envs.tasks.lesion_search_v1.LesionSearchV1Env` for why).
         time_penalty: the ``time`` term's cost of every step (>= 0).
-        bad_step_penalty: the ``bad_step`` term's cost of a step that counts against the
-            good-step share (>= 0).
+        bad_step_penalty: the ``bad_step`` term's cost of a step with the force out of its
+            band or the tilt beyond its tolerance (>= 0).
         smoothness_weight: the ``smoothness`` term's weight (>= 0).
         success_reward: the ``success`` term on the step that succeeds (> 0).
         failure_reward: the ``failure`` term on a failing last step (<= 0; v1's -10).
@@ -116,10 +116,12 @@ class ForceScanV1Env(ForceScanEnv):
       gamma is ``shaping_gamma`` (1: the terms sum to Phi(s_T) - Phi(s_0), and standing
       still earns nothing);
     - ``time``: -0.01 a step (``time_penalty``);
-    - ``bad_step``: -0.05 on a step that counts against the good-step share (after the
-      force first reached the band, the force out of it or the tilt beyond 5 degrees):
-      what the shaping cannot say, since an excursion out of the band and back sums to
-      nothing there but costs the share;
+    - ``bad_step``: -0.05 on a step with the normal force out of the 1-3 N band or the tilt
+      beyond 5 degrees, from the first step: what the shaping cannot say, since an
+      excursion out of the band and back sums to nothing there but costs the good-step
+      share; and it makes the press come first, where the task's share starts counting
+      only once the force has reached the band (a probe could otherwise ride above the
+      skin along the path and press at its end);
     - ``smoothness``: -0.02 x the mean squared change of the action / 4;
     - ``success``: +10 on the step that succeeds (``success_reward``);
     - ``failure``: -10 on a failing last step (``failure_reward``).
@@ -209,12 +211,11 @@ class ForceScanV1Env(ForceScanEnv):
         self._potential = potential
         low, high = cfg.force_band_n
         good = low <= normal <= high and self._tilt <= cfg.max_tilt_rad
-        bad = self._started and not good
         change = float(np.mean((action - self._last_action) ** 2)) / 4.0
         return {
             "progress": shaping,
             "time": -cfg.time_penalty,
-            "bad_step": -cfg.bad_step_penalty if bad else 0.0,
+            "bad_step": 0.0 if good else -cfg.bad_step_penalty,
             "smoothness": -cfg.smoothness_weight * min(1.0, change),
             "success": cfg.success_reward if success else 0.0,
             "failure": self.failure_reward() if failed else 0.0,
