@@ -25,6 +25,10 @@ FORCE_HISTORY = 4
 FORCE_BOUND_N = 20.0
 #: The remaining path's share of the potential's d(s) is capped at this.
 PATH_CAP = 1.5
+#: And the tilt's excess over its tolerance, in tolerances (9: 50 degrees of tilt, the
+#: skin's normal turning up to 55 along a path), so that every degree turned toward the
+#: normal pays however far off the probe is.
+TILT_CAP = 9.0
 
 
 @dataclass(frozen=True)
@@ -111,8 +115,8 @@ class ForceScanV1Env(ForceScanEnv):
     - ``progress``: gamma Phi(s') - Phi(s), potential-based shaping (Ng, Harada and Russell
       1999), Phi(s) = -w d(s), w = ``progress_weight`` (5), d(s) = min(1.5, the distance
       left to the path's end along the skin / the path's length) + min(1, the normal
-      force's distance from the 1-3 N band / the band's width) + min(1, the tilt beyond 5
-      degrees / 5 degrees); Phi lies in [-17.5, 0], ``info["potential"]`` reports it, and
+      force's distance from the 1-3 N band / the band's width) + min(9, the tilt beyond 5
+      degrees / 5 degrees); Phi lies in [-57.5, 0], ``info["potential"]`` reports it, and
       gamma is ``shaping_gamma`` (1: the terms sum to Phi(s_T) - Phi(s_0), and standing
       still earns nothing);
     - ``time``: -0.01 a step (``time_penalty``);
@@ -194,7 +198,7 @@ class ForceScanV1Env(ForceScanEnv):
         left = min(PATH_CAP, remaining_m / self._length) if self._length > 0 else 0.0
         low, high = cfg.force_band_n
         outside = min(1.0, max(0.0, low - normal, normal - high) / (high - low))
-        excess = min(1.0, max(0.0, tilt_rad - cfg.max_tilt_rad) / cfg.max_tilt_rad)
+        excess = min(TILT_CAP, max(0.0, tilt_rad - cfg.max_tilt_rad) / cfg.max_tilt_rad)
         return -cfg.progress_weight * (left + outside + excess)
 
     def _reward_terms(

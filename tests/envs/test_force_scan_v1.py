@@ -42,7 +42,7 @@ def test_checkers_pass_and_the_task_is_v0s() -> None:
 
 
 def test_the_potential_at_known_states() -> None:
-    """Pinned: Phi = -5 (min(1.5, left / length) + min(1, outside 1-3 N / 2 N) + min(1, tilt
+    """Pinned: Phi = -5 (min(1.5, left / length) + min(1, outside 1-3 N / 2 N) + min(9, tilt
     beyond 5 degrees / 5 degrees))."""
     env = _make()
     env.reset(seed=0)
@@ -52,7 +52,8 @@ def test_the_potential_at_known_states() -> None:
     assert unwrapped.potential(0.0, 2.0, 0.0) == 0.0  # at the end, in band, normal: the goal
     assert unwrapped.potential(0.5 * length, 2.0, five) == pytest.approx(-2.5)
     assert unwrapped.potential(length, 0.0, 1.5 * five) == pytest.approx(-5 * (1 + 0.5 + 0.5))
-    assert unwrapped.potential(3 * length, 12.0, math.pi) == pytest.approx(-17.5)  # capped
+    assert unwrapped.potential(length, 2.0, 6 * five) == pytest.approx(-5 * (1 + 5))
+    assert unwrapped.potential(3 * length, 12.0, math.pi) == pytest.approx(-57.5)  # capped
     env.close()
 
 
@@ -68,7 +69,7 @@ def test_the_shaping_telescopes_and_the_terms_keep_their_bounds(gamma: float) ->
         terms = info["reward_terms"]
         assert set(terms) == {"progress", "time", "bad_step", "smoothness", "success", "failure"}
         assert terms["time"] == -0.01 and terms["bad_step"] in (0.0, -0.05)
-        assert -0.02 <= terms["smoothness"] <= 0.0 and abs(terms["progress"]) <= 17.5
+        assert -0.02 <= terms["smoothness"] <= 0.0 and abs(terms["progress"]) <= 57.5
         assert reward == pytest.approx(sum(terms.values()))
         total += discount * terms["progress"]
         discount *= gamma
