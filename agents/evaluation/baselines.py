@@ -172,18 +172,22 @@ def main(argv: list[str] | None = None) -> int:
     for policy in policies:
         if policy not in ("scripted", "random"):
             parser.error(f"--policies takes scripted and random; got {policy!r}")
-    records = []
+    records: list[dict[str, Any]] = []
+
+    def save(record: dict[str, Any]) -> None:
+        """Print a record and write the JSON with it at once (nothing computed is lost)."""
+        records.append(record)
+        _print(record)
+        merged = merge(args.json, records)
+        write_json({"records": merged}, args.json, indent=1)
+        if args.markdown is not None:
+            args.markdown.write_text(table(merged))
+
     for folder in args.runs:
-        records.append(run_record(folder, args.episodes, args.seed))
-        _print(records[-1])
+        save(run_record(folder, args.episodes, args.seed))
     for env_id in (i for i in args.ids.split(",") if i):
         for policy in policies:
-            records.append(policy_record(env_id, policy, args.episodes, args.seed))
-            _print(records[-1])
-    merged = merge(args.json, records)
-    write_json({"records": merged}, args.json, indent=1)
-    if args.markdown is not None:
-        args.markdown.write_text(table(merged))
+            save(policy_record(env_id, policy, args.episodes, args.seed))
     return 0
 
 
