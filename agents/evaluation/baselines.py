@@ -33,17 +33,19 @@ import numpy as np
 from agents.evaluation.report import wilson_interval
 from agents.evaluation.run import evaluate
 from agents.outputs import write_json
-from agents.train.artifacts import read_config
+from agents.train.artifacts import read_config, training_folder
 
 #: The training evaluations' success that ``steps_to_80`` looks for.
 TARGET_SUCCESS = 0.8
 
 
-def run_record(folder: Path, episodes: int, seed: int) -> dict[str, Any]:
-    """The record of one ``probegym train`` folder (see the module docstring)."""
+def run_record(path: Path, episodes: int, seed: int) -> dict[str, Any]:
+    """The record of one ``probegym train`` folder (its final model) or of a checkpoint
+    ``.zip`` in one (see the module docstring)."""
+    folder, model = training_folder(path)
     config = read_config(folder)
-    records = _held_out(str(config["env_id"]), folder, episodes, seed)
-    steps = _trained_steps(folder)
+    records = _held_out(str(config["env_id"]), model, episodes, seed)
+    steps = _checkpoint_steps(model) or _trained_steps(folder)
     wall = _wall_s(folder)
     defaults = _defaults(config)
     return _record(config["env_id"], config["algo"], config["algo"], config["seed"], records) | {
@@ -53,7 +55,7 @@ def run_record(folder: Path, episodes: int, seed: int) -> dict[str, Any]:
         "steps_to_80": _steps_to(folder, TARGET_SUCCESS),
         "defaults": bool(defaults),
         "command": config.get("command"),
-        "model": str(folder),
+        "model": str(model),
     }
 
 
@@ -113,6 +115,14 @@ def _defaults(config: dict[str, Any]) -> bool:
     )
 
 
+def _checkpoint_steps(model: Path) -> int | None:
+    """A checkpoint's steps from its name (``model_<steps>_steps.zip``); None otherwise."""
+    parts = model.stem.split("_")
+    if len(parts) == 3 and parts[0] == "model" and parts[2] == "steps" and parts[1].isdigit():
+        return int(parts[1])
+    return None
+
+
 def _trained_steps(folder: Path) -> int:
     steps = [
         int(path.stem.split("_")[-2]) for path in (folder / "checkpoints").glob("model_*_steps.zip")
@@ -156,7 +166,9 @@ def merge(path: Path, new: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m agents.evaluation.baselines")
-    parser.add_argument("--runs", nargs="*", type=Path, default=[], help="probegym train folders")
+    parser.add_argument(
+        "--runs", nargs="*", type=Path, default=[], help="probegym train folders or checkpoints"
+    )
     parser.add_argument("--ids", default="", help="comma-separated env ids for --policies")
     parser.add_argument("--policies", default="", help="comma-separated: scripted, random")
     parser.add_argument("--episodes", type=int, default=50)

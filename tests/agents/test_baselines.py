@@ -92,3 +92,11 @@ def test_the_table_has_a_row_per_record_in_order() -> None:
     rows = table(records).splitlines()[2:]
     assert rows[0].startswith("| b | ppo | 1 | yes | 100,352 | 20,000 | 45/50 (79%-96%) | 15 min")
     assert rows[1].startswith("| b | random | - | yes | 0 | - | 0/50 (0%-7%) | - | - |")
+
+
+def test_a_checkpoints_steps_come_from_its_name() -> None:
+    from agents.evaluation.baselines import _checkpoint_steps
+
+    assert _checkpoint_steps(Path("runs/x/checkpoints/model_160000_steps.zip")) == 160_000
+    assert _checkpoint_steps(Path("runs/x/model.zip")) is None
+    assert _checkpoint_steps(Path("runs/x/checkpoints/model_vecnormalize_20000_steps.pkl")) is None
