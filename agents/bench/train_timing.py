@@ -19,6 +19,9 @@ callbacks; nothing else in the run changes. The parts of the learning loop's wal
 - ``updates_s``: the learning loop's wall time outside collecting rollouts: gradient updates
   (PPO after each rollout, SAC after every vector step), with SB3's logging.
 
+stable-baselines3 (the ``rl`` extra) is imported when a :class:`TrainTiming` is made, not
+with this module, so that the command line (which imports every command) works without it.
+
 Limitations: resets inside ``step`` (SB3's auto-reset in the worker) count as environment
 time; the time the run spends before ``learn`` (building the workers, the first evaluation
 environment) is not in the loop's wall time, so steps per second are those of the loop.
@@ -26,13 +29,12 @@ environment) is not in the loop's wall time, so steps per second are those of th
 
 from __future__ import annotations
 
+import functools
 import time
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
-from stable_baselines3.common.callbacks import BaseCallback
-from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
 
 class StepClock(gym.Wrapper):
@@ -48,63 +50,70 @@ class StepClock(gym.Wrapper):
         return observation, reward, terminated, truncated, info
 
 
-class TimedVecEnv(VecEnvWrapper):
-    """Adds up the wall time [s] from ``step_async`` to the end of ``step_wait``."""
+@functools.cache
+def _clock_classes() -> tuple[type, type]:
+    """(TimedVecEnv, TrainClock), defined once stable-baselines3 is imported."""
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
-    def __init__(self, venv: VecEnv) -> None:
-        super().__init__(venv)
-        self.step_s = 0.0
-        self._started = 0.0
+    class TimedVecEnv(VecEnvWrapper):
+        """Adds up the wall time [s] from ``step_async`` to the end of ``step_wait``."""
 
-    def step_async(self, actions: np.ndarray) -> None:
-        self._started = time.perf_counter()
-        self.venv.step_async(actions)
+        def __init__(self, venv: VecEnv) -> None:
+            super().__init__(venv)
+            self.step_s = 0.0
+            self._started = 0.0
 
-    def step_wait(self) -> Any:
-        result = self.venv.step_wait()
-        self.step_s += time.perf_counter() - self._started
-        return result
+        def step_async(self, actions: np.ndarray) -> None:
+            self._started = time.perf_counter()
+            self.venv.step_async(actions)
 
-    def reset(self) -> Any:
-        return self.venv.reset()
+        def step_wait(self) -> Any:
+            result = self.venv.step_wait()
+            self.step_s += time.perf_counter() - self._started
+            return result
 
+        def reset(self) -> Any:
+            return self.venv.reset()
 
-class TrainClock(BaseCallback):
-    """The learning loop's wall time, the rollouts' share, and the workers' step times."""
+    class TrainClock(BaseCallback):
+        """The learning loop's wall time, the rollouts' share, and the workers' step times."""
 
-    def __init__(self) -> None:
-        super().__init__(verbose=0)
-        self.loop_s = 0.0
-        self.rollout_s = 0.0
-        self.env_s = 0.0
-        self.env_tissue_s = 0.0
-        self.env_cpu_sum_s = 0.0
-        self.vector_steps = 0
-        self._loop_start = 0.0
-        self._rollout_start = 0.0
+        def __init__(self) -> None:
+            super().__init__(verbose=0)
+            self.loop_s = 0.0
+            self.rollout_s = 0.0
+            self.env_s = 0.0
+            self.env_tissue_s = 0.0
+            self.env_cpu_sum_s = 0.0
+            self.vector_steps = 0
+            self._loop_start = 0.0
+            self._rollout_start = 0.0
 
-    def _on_training_start(self) -> None:
-        self._loop_start = time.perf_counter()
+        def _on_training_start(self) -> None:
+            self._loop_start = time.perf_counter()
 
-    def _on_rollout_start(self) -> None:
-        self._rollout_start = time.perf_counter()
+        def _on_rollout_start(self) -> None:
+            self._rollout_start = time.perf_counter()
 
-    def _on_step(self) -> bool:
-        infos = self.locals.get("infos", [])
-        steps = [float(info.get("bench_step_s", 0.0)) for info in infos]
-        if steps:
-            slowest = int(np.argmax(steps))
-            self.env_s += steps[slowest]
-            self.env_tissue_s += float(infos[slowest].get("bench_tissue_s", 0.0))
-            self.env_cpu_sum_s += float(np.sum(steps))
-        self.vector_steps += 1
-        return True
+        def _on_step(self) -> bool:
+            infos = self.locals.get("infos", [])
+            steps = [float(info.get("bench_step_s", 0.0)) for info in infos]
+            if steps:
+                slowest = int(np.argmax(steps))
+                self.env_s += steps[slowest]
+                self.env_tissue_s += float(infos[slowest].get("bench_tissue_s", 0.0))
+                self.env_cpu_sum_s += float(np.sum(steps))
+            self.vector_steps += 1
+            return True
 
-    def _on_rollout_end(self) -> None:
-        self.rollout_s += time.perf_counter() - self._rollout_start
+        def _on_rollout_end(self) -> None:
+            self.rollout_s += time.perf_counter() - self._rollout_start
 
-    def _on_training_end(self) -> None:
-        self.loop_s = time.perf_counter() - self._loop_start
+        def _on_training_end(self) -> None:
+            self.loop_s = time.perf_counter() - self._loop_start
+
+    return TimedVecEnv, TrainClock
 
 
 class TrainTiming:
@@ -113,26 +122,26 @@ class TrainTiming:
     env_wrapper = StepClock
 
     def __init__(self) -> None:
-        self.callback = TrainClock()
-        self._inner: TimedVecEnv | None = None
-        self._outer: TimedVecEnv | None = None
+        self._timed, clock = _clock_classes()
+        self.callback = clock()
+        self._inner: Any = None
+        self._outer: Any = None
 
-    def inner(self, venv: VecEnv) -> VecEnv:
+    def inner(self, venv: Any) -> Any:
         """Wrap the workers' vector environment (below the normalisation)."""
-        self._inner = TimedVecEnv(venv)
+        self._inner = self._timed(venv)
         return self._inner
 
-    def outer(self, venv: VecEnv) -> VecEnv:
+    def outer(self, venv: Any) -> Any:
         """Wrap the vector environment the algorithm steps (above the normalisation)."""
-        self._outer = TimedVecEnv(venv)
+        self._outer = self._timed(venv)
         return self._outer
 
-    @staticmethod
-    def mirror(venv: VecEnv) -> VecEnv:
+    def mirror(self, venv: Any) -> Any:
         """The evaluation's vector environment wrapped as the training's, below and above
         the normalisation (SB3 copies the normalisation's statistics by walking both wrapper
         chains side by side); its time is not counted."""
-        return TimedVecEnv(venv)
+        return self._timed(venv)
 
     def parts(self) -> dict[str, float]:
         """The learning loop's wall time and its parts [s] (see the module docstring)."""
