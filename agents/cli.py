@@ -316,6 +316,10 @@ def _build_parser() -> argparse.ArgumentParser:
         "--train-steps", type=int, default=None,
         help="the train phase's environment steps (default: PPO three updates, SAC 3,000)",
     )  # fmt: skip
+    train_bench.add_argument(
+        "--model", type=Path, default=None,
+        help="a probegym train run (folder or .zip) trained on one of --ids: replay its policy",
+    )  # fmt: skip
     train_bench.add_argument("--json", type=Path, default=None, help="default probegym-out/bench/")
     sweep = bench_kinds.add_parser("sweep", help="each method's force along a sweep, against LM")
     sweep.add_argument(
@@ -518,6 +522,7 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             steps=None
             if args.train_steps is None
             else _at_least_one(parser, "--train-steps", args.train_steps),
+            model=args.model,
         )
         return 0
     if args.command == "bench" and args.bench == "effects":

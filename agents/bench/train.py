@@ -14,6 +14,10 @@ one environment in this process, records with a ``phase`` key:
   step starts with the probe in contact (``contact_share`` says how many that was), median
   CPU time, with the mean Newton iterations of the tissue's steps beside it.
 
+- ``replay`` (where ``--model`` names a run trained on the id): the trained policy's own
+  actions (deterministic, as ``probegym evaluate`` takes them) from episodes reset with seeds
+  1, 2, ..., timed as ``exploring`` is: what a step costs once a policy has learnt the task.
+
 - ``train`` (per algorithm of ``--algo``): ``probegym train``'s own code path
   (:func:`agents.train.run.train`: ``n_envs`` worker processes, ``VecNormalize``, the
   callbacks) with the run's default hyper-parameters for a fixed number of steps (PPO: three
@@ -34,7 +38,6 @@ one environment in this process, records with a ``phase`` key:
 ``train_over_press`` the end-to-end rate over (environments that have a core each x the
 press's rate), which it aims to raise to 0.75 for PPO.
 
-Limitations: the replay of a trained policy's episode is not measured.
 """
 
 from __future__ import annotations
@@ -42,7 +45,7 @@ from __future__ import annotations
 import os
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +54,7 @@ import numpy as np
 from agents.bench.contact import threading_environment
 from agents.bench.env import scripted_press
 from agents.bench.report import BenchRecord, MarkdownTable, write_records
+from tissue.errors import ConfigError
 
 DEFAULT_IDS = ("probegym/BreastCompress-v0",)
 DEFAULT_METHODS = ("lm",)
@@ -104,9 +108,11 @@ def _identity(env: Any, env_id: str, contact: str, level: int, phase: str) -> di
 def press_record(env_id: str, contact: str, level: int) -> dict[str, Any]:
     """The ``press`` phase (see the module docstring): every step timed, as ``bench env``."""
     env = _make(env_id, contact, level)
-    env.reset(seed=0)
+    observation, _ = env.reset(seed=0)
     record = _identity(env, env_id, contact, level, "press")
-    timed = _time_steps(env, iter(scripted_press(env.unwrapped)), contact_only=False)
+    timed = _time_steps(
+        env, _replaying(scripted_press(env.unwrapped)), observation, contact_only=False
+    )
     env.close()
     return record | timed
 
@@ -117,12 +123,53 @@ def exploring_record(
     """The ``exploring`` phase (see the module docstring): the steps in contact timed."""
     env = _make(env_id, contact, level)
     low, high = env.action_space.low, env.action_space.high
-    draws = iter(_exploring_actions(low.shape, low, high, seed, steps))
-    env.reset(seed=1)
+    draws = _replaying(_exploring_actions(low.shape, low, high, seed, steps))
+    observation, _ = env.reset(seed=1)
     record = _identity(env, env_id, contact, level, "exploring")
-    record |= _time_steps(env, draws, contact_only=True, next_seed=2)
+    record |= _time_steps(env, draws, observation, contact_only=True, next_seed=2)
     env.close()
     record["action_std"] = exploring_spread()
+    return record
+
+
+def load_replayed_policy(model: Path, env_ids: list[str]) -> Any:
+    """The trained policy of ``model`` (a ``probegym train`` folder or a model .zip in one),
+    checked to have been trained on one of ``env_ids``.
+
+    Raises:
+        ConfigError: the model cannot be loaded, or was trained on another id.
+    """
+    from agents.train import TrainedPolicyError, load_policy
+    from agents.train.artifacts import read_config, training_folder
+
+    try:
+        trained_on = read_config(training_folder(model)[0]).get("env_id")
+        if trained_on not in env_ids:
+            raise ConfigError(
+                f"--model {model} was trained on {trained_on!r}, which --ids does not name "
+                f"({', '.join(env_ids)}); add it to --ids or give a model trained on one of them"
+            )
+        trained = load_policy(model)
+    except TrainedPolicyError as error:
+        raise ConfigError(f"--model {model}: {error}") from None
+    return trained
+
+
+def replay_record(
+    env_id: str, contact: str, level: int, policy: Any, steps: int = EXPLORING_STEPS
+) -> dict[str, Any]:
+    """The ``replay`` phase (see the module docstring): ``policy``'s own actions for
+    ``steps`` steps, the steps in contact timed."""
+    env = _make(env_id, contact, level)
+    observation, _ = env.reset(seed=1)
+    record = _identity(env, env_id, contact, level, "replay")
+    budget = iter(range(steps))
+
+    def act(seen: dict[str, Any]) -> np.ndarray | None:
+        return None if next(budget, None) is None else policy(seen)
+
+    record |= _time_steps(env, act, observation, contact_only=True, next_seed=2)
+    env.close()
     return record
 
 
@@ -242,20 +289,36 @@ def train_record(
     return record
 
 
+#: An action source for :func:`_time_steps`: the next action for an observation, None to stop.
+Actor = Callable[[dict[str, Any]], "np.ndarray | None"]
+
+
+def _replaying(actions: list[np.ndarray]) -> Actor:
+    """An actor that plays ``actions`` in order, whatever it observes, then stops."""
+    remaining = iter(actions)
+    return lambda _: next(remaining, None)
+
+
 def _time_steps(
-    env: Any, actions: Iterator[np.ndarray], contact_only: bool, next_seed: int | None = None
+    env: Any,
+    act: Actor,
+    observation: dict[str, Any],
+    contact_only: bool,
+    next_seed: int | None = None,
 ) -> dict[str, Any]:
-    """Step ``env`` through ``actions`` and time each step (CPU time). A step is in contact
-    when its tissue step starts with a pressing force; ``contact_only`` times only those.
-    An episode that ends stops the run (``next_seed`` None) or resets with the next seed.
-    Returns :func:`_rates`' fields, ``contact_share`` (of the steps taken) and ``episodes``."""
+    """Step ``env`` (just reset to ``observation``) with ``act``'s actions until it gives
+    None, and time each step (CPU time; the action is chosen outside the clock). A step is
+    in contact when its tissue step starts with a pressing force; ``contact_only`` times
+    only those. An episode that ends stops the run (``next_seed`` None) or resets with the
+    next seed. Returns :func:`_rates`' fields, ``contact_share`` (of the steps taken) and
+    ``episodes``."""
     unwrapped = env.unwrapped
     cpu, iterations, in_contact = [], [], []
     episodes = 1
-    for action in actions:
+    while (action := act(observation)) is not None:
         touching = unwrapped.normal_force_n(unwrapped.coupling.last_step) > 0.0
         tic = time.process_time()
-        _, _, terminated, truncated, _ = env.step(action)
+        observation, _, terminated, truncated, _ = env.step(action)
         elapsed = time.process_time() - tic
         in_contact.append(touching)
         if touching or not contact_only:
@@ -264,7 +327,7 @@ def _time_steps(
         if terminated or truncated:
             if next_seed is None:
                 break
-            env.reset(seed=next_seed + episodes - 1)
+            observation, _ = env.reset(seed=next_seed + episodes - 1)
             episodes += 1
     rates = _rates(cpu, iterations)
     rates["contact_share"] = float(np.mean(in_contact)) if in_contact else 0.0
@@ -300,23 +363,30 @@ def run_train_benchmark(
     algos: list[str] | None = None,
     n_envs: int = DEFAULT_N_ENVS,
     steps: int | None = None,
+    model: Path | None = None,
 ) -> list[dict[str, Any]]:
     """The phases for every id and method (``train`` for each of ``algos``; ``[]``: none);
     prints the tables and writes the JSON as it goes. ``steps``: the ``train`` phase's
-    environment steps (default :func:`train_steps`)."""
+    environment steps (default :func:`train_steps`); ``model``: a trained run whose policy
+    the ``replay`` phase steps, on the id it was trained on (refused before any work when
+    ``env_ids`` does not name it)."""
+    ids = list(env_ids or DEFAULT_IDS)
+    replayed = None if model is None else load_replayed_policy(model, ids)
     records: list[dict[str, Any]] = []
     started = time.strftime("%Y-%m-%dT%H:%M:%S")
     provenance = BenchRecord("probegym bench train: a training step's cost, by phase", command)
-    for env_id in env_ids or DEFAULT_IDS:
+    for env_id in ids:
         for contact in methods or DEFAULT_METHODS:
             press = press_record(env_id, contact, level)
             exploring = exploring_record(env_id, contact, level)
-            if press["steps_per_s"] and exploring["steps_per_s"]:
-                ratio = exploring["steps_per_s"] / press["steps_per_s"]
-                exploring["exploring_over_press"] = ratio
-                exploring["target_exploring_over_press"] = TARGET_EXPLORING_OVER_PRESS
-                exploring["meets_target"] = ratio >= TARGET_EXPLORING_OVER_PRESS
-            for record in (press, exploring):
+            _judge_phase(exploring, press)
+            phases = [press, exploring]
+            if replayed is not None and replayed.config.get("env_id") == env_id:
+                replay = replay_record(env_id, contact, level, replayed)
+                replay["model"] = str(model)
+                _judge_phase(replay, press)
+                phases.append(replay)
+            for record in phases:
                 records.append(record)
                 _print(record)
             write_records(json_path, "train", started, records, threads=threading_environment())
@@ -332,6 +402,18 @@ def run_train_benchmark(
                 write_records(json_path, "train", started, records, threads=threading_environment())
     provenance.write(json_path, [_table(records), _threads_table(records), _train_table(records)])
     return records
+
+
+def _judge_phase(record: dict[str, Any], press: dict[str, Any]) -> None:
+    """``<phase>_over_press``: an ``exploring`` or ``replay`` record's rate over the press's,
+    judged against :data:`TARGET_EXPLORING_OVER_PRESS` (the training-speed work's aim for
+    any step a learner takes)."""
+    if not (press["steps_per_s"] and record["steps_per_s"]):
+        return
+    ratio = record["steps_per_s"] / press["steps_per_s"]
+    record[f"{record['phase']}_over_press"] = ratio
+    record[f"target_{record['phase']}_over_press"] = TARGET_EXPLORING_OVER_PRESS
+    record["meets_target"] = ratio >= TARGET_EXPLORING_OVER_PRESS
 
 
 def _judge_train(record: dict[str, Any], press: dict[str, Any]) -> None:
@@ -430,13 +512,13 @@ def _table(records: list[dict[str, Any]]) -> MarkdownTable:
     table = MarkdownTable(
         "one environment's steps per second by phase (median CPU time), robust profile",
         ["env", "contact", "level (tets)", "skin edge (mm)", "phase", "steps/s",
-         "Newton iterations", "steps timed", "in contact", "exploring / press (target 0.85)"],
+         "Newton iterations", "steps timed", "in contact", "over press (target 0.85)"],
     )  # fmt: skip
     for r in records:
-        if r["phase"] not in ("press", "exploring"):
+        if r["phase"] not in ("press", "exploring", "replay"):
             continue
         edge = r["collision_edge_m"]
-        ratio = r.get("exploring_over_press")
+        ratio = r.get(f"{r['phase']}_over_press")
         verdict = (
             "" if ratio is None else f"{ratio:.2f} ({'met' if r['meets_target'] else 'missed'})"
         )
@@ -453,12 +535,12 @@ def _table(records: list[dict[str, Any]]) -> MarkdownTable:
 
 def _print(record: dict[str, Any]) -> None:
     rate = record["steps_per_s"]
-    ratio = record.get("exploring_over_press")
+    ratio = record.get(f"{record['phase']}_over_press")
     print(
         f"{record['env_id']} {record['contact']} level {record['level']} {record['phase']:9s}: "
         + ("no step timed" if rate is None else f"{rate:6.0f} steps/s")
         + f", {record.get('newton_iterations_mean', 0.0):.2f} Newton iterations, "
         f"{record['steps_timed']} steps timed, {record['contact_share'] * 100:.0f} % in contact"
-        + ("" if ratio is None else f"; exploring / press {ratio:.2f}"),
+        + ("" if ratio is None else f"; {record['phase']} / press {ratio:.2f}"),
         flush=True,
     )

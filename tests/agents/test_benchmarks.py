@@ -8,6 +8,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from agents.bench.tissue import print_robust_targets, robust_step_target
@@ -222,6 +223,44 @@ def test_bench_train_times_the_press_and_the_exploring_step(tmp_path: Path) -> N
     ratio = exploring["steps_per_s"] / press["steps_per_s"]
     assert exploring["exploring_over_press"] == pytest.approx(ratio)
     assert exploring["meets_target"] == (ratio >= 0.85)
+
+
+def test_bench_train_replay_times_a_policys_own_steps_in_contact() -> None:
+    """The replay phase steps the policy on what it observes (here the task's scripted
+    policy standing in for a trained one), across episodes, and times the steps in contact."""
+    from agents.bench.train import replay_record
+    from agents.policies.compression import CompressionPolicy
+
+    seen: list[float] = []
+    scripted = CompressionPolicy()
+
+    def policy(observation: dict) -> np.ndarray:
+        seen.append(float(observation["lesion"][3]))
+        return scripted(observation)
+
+    record = replay_record("probegym/BreastCompress-v0", "lm", 623, policy, steps=80)
+    assert record["phase"] == "replay" and record["tets"] == 571
+    assert len(seen) == 80  # one decision per step, from the step's own observation
+    assert 1.0 in seen  # the lesion came into view: the policy pressed on what it saw
+    assert 0 < record["steps_timed"] <= 80 and record["steps_per_s"] > 0.0
+    assert record["episodes"] >= 2  # the scripted press succeeds in under 80 steps
+
+
+def test_bench_train_refuses_a_model_of_another_task_before_any_work(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"env_id": "probegym/ForceScan-v1"}))
+    (run / "model.zip").write_bytes(b"not read")
+    json_path = tmp_path / "train.json"
+    args = ["bench", "train", "--algo", "none", "--model", str(run), "--json", str(json_path)]
+    assert main(args) == 2
+    error = capsys.readouterr().err
+    assert "probegym/ForceScan-v1" in error and "--ids" in error
+    assert not json_path.exists()
+    assert main([*args[:-4], "--model", str(tmp_path / "missing"), "--json", str(json_path)]) == 2
+    assert "missing" in capsys.readouterr().err
 
 
 @pytest.mark.slow
