@@ -8,10 +8,10 @@ one environment in this process, records with a ``phase`` key:
   second from the median CPU time of a step;
 - ``exploring``: actions as a freshly initialised PPO policy draws them: Gaussian about SB3's
   initial mean (close to 0: its action layer starts with weights of gain 0.01) with the
-  spread ``probegym train`` gives PPO (``log_std_init`` in
-  :data:`agents.train.run.DEFAULT_HYPERPARAMETERS`), clipped to the action box as SB3 clips
-  them, episodes reset with seeds 1, 2, ... as they end. Timed over the steps whose tissue
-  step starts with the probe in contact (``contact_share`` says how many that was), median
+  spread ``probegym train`` gives PPO on the task (``log_std_init`` of
+  :mod:`agents.train.hyperparameters`), clipped to the action box as SB3 clips them,
+  episodes reset with seeds 1, 2, ... as they end. Timed over the steps whose tissue step
+  starts with the probe in contact (``contact_share`` says how many that was), median
   CPU time, with the mean Newton iterations of the tissue's steps beside it.
 
 - ``replay`` (where ``--model`` names a run trained on the id): the trained policy's own
@@ -76,12 +76,12 @@ SAC_STEPS = 3_000
 THREAD_STEPS = 100
 
 
-def exploring_spread() -> float:
+def exploring_spread(env_id: str | None = None) -> float:
     """The standard deviation of a fresh PPO policy's actions under ``probegym train``."""
-    from agents.train.run import DEFAULT_HYPERPARAMETERS
+    from agents.train.hyperparameters import default_hyperparameters
 
-    log_std = DEFAULT_HYPERPARAMETERS["ppo"]["policy_kwargs"].get("log_std_init", 0.0)
-    return float(np.exp(log_std))
+    policy_kwargs = default_hyperparameters("ppo", env_id).get("policy_kwargs", {})
+    return float(np.exp(policy_kwargs.get("log_std_init", 0.0)))
 
 
 def _make(env_id: str, contact: str, level: int) -> Any:
@@ -123,12 +123,12 @@ def exploring_record(
     """The ``exploring`` phase (see the module docstring): the steps in contact timed."""
     env = _make(env_id, contact, level)
     low, high = env.action_space.low, env.action_space.high
-    draws = _replaying(_exploring_actions(low.shape, low, high, seed, steps))
+    draws = _replaying(_exploring_actions(low.shape, low, high, seed, steps, env_id))
     observation, _ = env.reset(seed=1)
     record = _identity(env, env_id, contact, level, "exploring")
     record |= _time_steps(env, draws, observation, contact_only=True, next_seed=2)
     env.close()
-    record["action_std"] = exploring_spread()
+    record["action_std"] = exploring_spread(env_id)
     return record
 
 
@@ -173,10 +173,13 @@ def replay_record(
     return record
 
 
-def _exploring_actions(shape: tuple[int, ...], low: Any, high: Any, seed: int, steps: int):
-    """``steps`` actions as a fresh PPO policy draws them (see the module docstring)."""
+def _exploring_actions(
+    shape: tuple[int, ...], low: Any, high: Any, seed: int, steps: int, env_id: str
+) -> list[np.ndarray]:
+    """``steps`` actions as a fresh PPO policy draws them on ``env_id`` (see the module
+    docstring)."""
     rng = np.random.default_rng(seed)
-    spread = exploring_spread()
+    spread = exploring_spread(env_id)
     return [
         np.clip(spread * rng.standard_normal(shape), low, high).astype(np.float32)
         for _ in range(steps)
@@ -190,7 +193,7 @@ def threads_record(
     import threading
 
     def run(env: Any, index: int) -> None:
-        for action in _exploring_actions(shape, low, high, index, steps):
+        for action in _exploring_actions(shape, low, high, index, steps, env_id):
             _, _, terminated, truncated, _ = env.step(action)
             if terminated or truncated:
                 env.reset()
@@ -234,12 +237,17 @@ def threads_record(
     }
 
 
-def train_steps(algo: str, n_envs: int) -> int:
-    """The ``train`` phase's default steps for ``algo`` (see the module docstring)."""
-    from agents.train.run import DEFAULT_HYPERPARAMETERS
+def _ppo_rollout(env_id: str, n_envs: int) -> int:
+    """Environment steps in one of ``probegym train``'s PPO updates on ``env_id``."""
+    from agents.train.hyperparameters import default_hyperparameters
 
+    return int(default_hyperparameters("ppo", env_id)["n_steps"]) * n_envs
+
+
+def train_steps(algo: str, n_envs: int, env_id: str | None = None) -> int:
+    """The ``train`` phase's default steps for ``algo`` (see the module docstring)."""
     if algo == "ppo":
-        return PPO_UPDATES * int(DEFAULT_HYPERPARAMETERS["ppo"]["n_steps"]) * n_envs
+        return PPO_UPDATES * _ppo_rollout(env_id or DEFAULT_IDS[0], n_envs)
     return SAC_STEPS
 
 
@@ -248,11 +256,11 @@ def train_record(
 ) -> dict[str, Any]:
     """The ``train`` phase (see the module docstring) for one algorithm."""
     from agents.bench.train_timing import TrainTiming
-    from agents.train.run import DEFAULT_HYPERPARAMETERS, TrainSettings, train
+    from agents.train.run import TrainSettings, train
 
-    steps = steps or train_steps(algo, n_envs)
+    steps = steps or train_steps(algo, n_envs, env_id)
     # No evaluation inside the timed loop: PPO collects whole rollouts past the budget.
-    rollout = int(DEFAULT_HYPERPARAMETERS["ppo"]["n_steps"]) * n_envs
+    rollout = _ppo_rollout(env_id, n_envs)
     quiet = 10 * max(steps, rollout)
     timing = TrainTiming()
     with tempfile.TemporaryDirectory(prefix="probegym-bench-train-") as out:

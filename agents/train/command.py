@@ -55,6 +55,14 @@ def add_train_parser(commands: Any) -> None:
         + "'{\"start_offset_range_m\": [0.0, 0.01]}'",
     )
     parser.add_argument(
+        "--hyperparameters",
+        type=hyperparameters_json,
+        default={},
+        metavar="JSON",
+        help="SB3 keyword arguments over the task's defaults (agents/train/hyperparameters.py), "
+        + "a JSON object, e.g. '{\"n_steps\": 2048}'",
+    )
+    parser.add_argument(
         "--init-from",
         type=Path,
         default=None,
@@ -157,6 +165,7 @@ def _settings(
         eval_episodes=args.eval_episodes,
         checkpoint_every=args.checkpoint_every,
         normalize=not args.no_normalize,
+        hyperparameters=dict(args.hyperparameters),
         init_from=args.init_from,
         pretrain_episodes=args.pretrain_scripted,
         progress=not args.no_progress and args.ray is None,
@@ -238,6 +247,23 @@ def env_kwargs_json(value: str) -> dict[str, Any]:
             f"{value!r} is not a JSON object; give one such as " + EXAMPLE_KWARGS
         )
     return {key: _tuples(item) for key, item in parsed.items()}
+
+
+def hyperparameters_json(value: str) -> dict[str, Any]:
+    """``--hyperparameters``: a JSON object of SB3 keyword arguments (lists stay lists: SB3
+    takes ``net_arch`` as one)."""
+    try:
+        parsed = json.loads(value)
+    except json.JSONDecodeError as error:
+        raise argparse.ArgumentTypeError(
+            f"{value!r} is not JSON ({error.msg}); give an object such as "
+            '\'{"n_steps": 2048, "learning_rate": 0.0001}\''
+        ) from None
+    if not isinstance(parsed, dict):
+        raise argparse.ArgumentTypeError(
+            f"{value!r} is not a JSON object; give one such as '{{\"n_steps\": 2048}}'"
+        )
+    return parsed
 
 
 def _tuples(value: Any) -> Any:

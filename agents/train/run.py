@@ -43,41 +43,33 @@ from agents.train.artifacts import (
     read_config,
     training_folder,
 )
+from agents.train.hyperparameters import default_hyperparameters
 from tissue.errors import ConfigError
 
 #: Algorithms ``--algo`` takes.
 ALGORITHMS = ("ppo", "sac")
 
-#: Hyper-parameters per algorithm (SB3's names); anything not here is SB3's default.
-#: PPO: 1,024 steps per env per update (four BreastCompress episodes), minibatches of 256,
-#: a small network; SAC: SB3's defaults with a 100k buffer and learning from 1,000 steps.
-DEFAULT_HYPERPARAMETERS: dict[str, dict[str, Any]] = {
-    "ppo": {
-        "n_steps": 1024,
-        "batch_size": 256,
-        "n_epochs": 10,
-        "learning_rate": 3e-4,
-        "gamma": 0.99,
-        "gae_lambda": 0.95,
-        "clip_range": 0.2,
-        "ent_coef": 0.0,
-        # A narrower start than SB3's std of 1: an action of 1 moves the probe 5 mm a step,
-        # and holding a lesion within 1 mm of its target needs far less than that.
-        "policy_kwargs": {"net_arch": [128, 128], "log_std_init": -1.0},
-    },
-    "sac": {
-        "buffer_size": 100_000,
-        "learning_starts": 1_000,
-        "batch_size": 256,
-        "learning_rate": 3e-4,
-        "gamma": 0.99,
-        "policy_kwargs": {"net_arch": [256, 256]},
-    },
-}
-
 
 class TrainError(ConfigError):
     """A training request that cannot run: the message names the value and the fix."""
+
+
+def _check_hyperparameters(algorithm: Any, settings: TrainSettings) -> None:
+    """Refuse a hyper-parameter the algorithm does not take, naming the ones it does."""
+    import inspect
+
+    own = {"self", "policy", "env", "seed", "device", "verbose", "tensorboard_log"}
+    accepted = {
+        name for name in inspect.signature(algorithm.__init__).parameters
+        if name not in own and not name.startswith("_")
+    }  # fmt: skip
+    unknown = sorted(set(settings.hyperparameters) - accepted)
+    if unknown:
+        raise TrainError(
+            f"--hyperparameters: {settings.algo} takes no {', '.join(map(repr, unknown))}; "
+            f"it takes {', '.join(sorted(accepted))} (probegym train sets seed, device, "
+            "verbose and tensorboard_log itself)"
+        )
 
 
 @dataclass(frozen=True)
@@ -100,7 +92,9 @@ class TrainSettings:
             and, for PPO's training, rewards (by the running spread of the discounted return:
             a failure's large penalty then does not swamp the value function); evaluations
             report raw returns.
-        hyperparameters: the algorithm's (merged over :data:`DEFAULT_HYPERPARAMETERS`).
+        hyperparameters: this run's own, over the task's defaults
+            (:mod:`agents.train.hyperparameters`); checked against the algorithm's
+            keyword arguments before any environment is built.
         progress: show a progress bar.
         init_from: start from a trained model instead of a new one (a ``probegym train``
             folder or a model ``.zip`` in one, with its normalisation statistics): the
@@ -158,10 +152,15 @@ class TrainSettings:
             )
         if Path(self.out).exists() and not Path(self.out).is_dir():
             raise TrainError(f"--out {self.out} is a file; give a folder")
+        if not isinstance(self.hyperparameters, dict):
+            raise TrainError(
+                f"--hyperparameters must be a JSON object of SB3 keyword arguments; got "
+                f"{self.hyperparameters!r}"
+            )
 
     def resolved_hyperparameters(self) -> dict[str, Any]:
-        """The algorithm's hyper-parameters: the defaults, then this run's."""
-        merged = dict(DEFAULT_HYPERPARAMETERS[self.algo])
+        """The algorithm's hyper-parameters: the task's defaults, then this run's."""
+        merged = default_hyperparameters(self.algo, self.env_id)
         merged.update(self.hyperparameters)
         if self.algo == "ppo":
             # A minibatch no larger than one update's rollout.
@@ -205,6 +204,7 @@ def train(
     # One thread for the networks: the env workers have the cores, and the same updates
     # come out in any process (a Ray worker, here) whatever its thread count.
     torch.set_num_threads(1)
+    _check_hyperparameters({"ppo": PPO, "sac": SAC}[settings.algo], settings)
     out = Path(settings.out)
     out.mkdir(parents=True, exist_ok=True)
     previous = _previous_identity(out)

@@ -65,6 +65,59 @@ def test_an_out_that_is_a_file_is_refused(tmp_path: Path, capsys) -> None:
     assert "is a file; give a folder" in capsys.readouterr().err
 
 
+def test_hyperparameters_come_from_one_table_per_algorithm_and_task() -> None:
+    """Each algorithm's defaults, a task's own entry over them (policy_kwargs merged key by
+    key), and a run's own values over both; every registered task resolves."""
+    import envs
+    from agents.train.hyperparameters import HYPERPARAMETERS, default_hyperparameters
+    from agents.train.run import TrainSettings
+
+    table = {
+        "ppo": {
+            "default": {"n_steps": 1024, "policy_kwargs": {"net_arch": [64], "log_std_init": -1.0}},
+            "probegym/ForceScan-v1": {"n_steps": 2048, "policy_kwargs": {"log_std_init": -2.0}},
+        }
+    }  # fmt: skip
+    scan = default_hyperparameters("ppo", "probegym/ForceScan-v1", table)
+    assert scan == {"n_steps": 2048, "policy_kwargs": {"net_arch": [64], "log_std_init": -2.0}}
+    assert default_hyperparameters("ppo", ENV_ID, table)["n_steps"] == 1024
+    scan["policy_kwargs"]["net_arch"].append(1)  # a copy: the table is unchanged
+    assert table["ppo"]["default"]["policy_kwargs"]["net_arch"] == [64]
+    for algo in HYPERPARAMETERS:
+        for env_id in envs.ENV_IDS:
+            settings = TrainSettings(env_id=env_id, out=Path("unused"), algo=algo)
+            assert settings.resolved_hyperparameters() == default_hyperparameters(algo, env_id)
+    own = TrainSettings(env_id=ENV_ID, out=Path("unused"), hyperparameters={"n_epochs": 3})
+    resolved = own.resolved_hyperparameters()
+    assert resolved["n_epochs"] == 3 and resolved["n_steps"] == 1024
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        ("[1]", "is not a JSON object"),
+        ("{n_steps: 1}", "is not JSON"),
+    ],
+)
+def test_bad_hyperparameters_json_is_refused(value: str, message: str, capsys) -> None:
+    with pytest.raises(SystemExit):
+        main(["train", ENV_ID, "--hyperparameters", value])
+    assert message in capsys.readouterr().err
+
+
+def test_a_hyperparameter_the_algorithm_does_not_take_is_refused_before_any_work(
+    tmp_path: Path, capsys
+) -> None:
+    pytest.importorskip("stable_baselines3", reason=RL_EXTRA)
+    out = tmp_path / "run"
+    assert _train(out, "--hyperparameters", '{"n_step": 2048}') == 2
+    error = capsys.readouterr().err
+    assert "ppo takes no 'n_step'" in error and "n_steps" in error
+    assert _train(out, "--algo", "sac", "--hyperparameters", '{"seed": 1}') == 2
+    assert "sets seed" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_a_path_that_is_no_model_is_refused(tmp_path: Path) -> None:
     from agents.train import TrainedPolicyError, load_policy
 
@@ -81,8 +134,8 @@ def test_cloning_fits_the_scripted_policy_s_actions() -> None:
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
+    from agents.train.hyperparameters import default_hyperparameters
     from agents.train.imitation import clone_into, scripted_demonstrations
-    from agents.train.run import DEFAULT_HYPERPARAMETERS
 
     torch.set_num_threads(1)
     kwargs = {"contact": "lm", "mesh": 623}
@@ -92,7 +145,7 @@ def test_cloning_fits_the_scripted_policy_s_actions() -> None:
     venv = make_vec_env(f"envs:{ENV_ID}", n_envs=1, seed=0, env_kwargs=kwargs,
                         vec_env_cls=DummyVecEnv)  # fmt: skip
     venv = VecNormalize(venv, norm_obs_keys=list(venv.observation_space.spaces))  # type: ignore[attr-defined]
-    model = PPO("MultiInputPolicy", venv, seed=0, device="cpu", **DEFAULT_HYPERPARAMETERS["ppo"])
+    model = PPO("MultiInputPolicy", venv, seed=0, device="cpu", **default_hyperparameters("ppo"))
 
     def action_error() -> float:
         observed = venv.normalize_obs(demos.observations)
