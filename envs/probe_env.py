@@ -9,25 +9,25 @@ reward term declares the simulated effects it needs (:data:`envs.effects.EFFECTS
 Keyword arguments common to every task (unknown ones are errors that list the valid ones):
 ``contact`` (penalty | lm | prescribed | pbd), ``profile`` (paper | robust), ``mesh`` (a
 phantom level or a mesh file, see ``tissue.TissueSpec``), ``collision_edge_m`` (the skin's
-resolution: its collision surface's edge [m], :data:`COLLISION_EDGE_M` by default, finer than
-the probe's 13.2 mm face; None for the mesh's own surface, the paper's 1,004 triangles on
-the phantom), ``young_pa``, ``poisson``,
-``lesion_stiffness_ratio``, ``control_mode`` (cartesian_impedance | joint_delta),
-``stiffness_n_per_m`` (the probe impedance's translational stiffness), ``render_mode``
-(rgb_array | human), ``camera_name`` (overview | probe_side), ``width``, ``height``,
-``robot`` (an MJCF arm) and ``flange_site``, ``robot_base_m`` (where its base stands),
-``robot_dt``, ``scene`` (a preset of :data:`envs.effects.SCENES`: ``full``, the default,
-``imaging``, ``one_way``, ``rigid``) or ``effects`` (a list of effect names, see
-:mod:`envs.effects`: a scene simulates only the effects it calls for, and a task whose
-terms need an effect the scene lacks is refused), ``max_translation_m`` and
-``max_rotation_rad`` (the action's scale), the imaging geometry ``aperture_m``,
-``imaging_depth_m``, ``slice_thickness_m``, and ``image`` (True, or an
-:class:`envs.ultrasound.BModeConfig`: observe a B-mode image of the slice under the probe;
-off by default, and then never computed; with it, ``rgb_array`` frames show the image to the
-right of the 3D view, at the frame's height), ``domain_randomization`` (True, a dict or an
-:class:`envs.randomization.DomainRandomization`: each reset draws the tissue's and lesions'
-stiffness and the lesions' places, and the F/T sensor and probe pose the policy observes are
-noisy; off by default).
+resolution: its collision surface's edge [m], :data:`COLLISION_EDGE_M` by default, finer
+than the probe's 13.2 mm face; None for the mesh's own surface, the paper's 1,004 triangles
+on the phantom), ``young_pa``, ``poisson``, ``lesion_stiffness_ratio``, ``control_mode``
+(cartesian_impedance | joint_delta), ``stiffness_n_per_m`` (the probe impedance's
+translational stiffness), ``render_mode`` (rgb_array | human), ``camera_name`` (overview |
+probe_side), ``width``, ``height``, ``robot`` (an MJCF arm of any joint count, its keyframe
+``home`` seeding its home pose where it has one; :data:`envs.scene.ARM7_PATH` is a 7-joint
+one) and ``flange_site``, ``robot_base_m`` (where its base stands), ``robot_dt``, ``scene``
+(a preset of :data:`envs.effects.SCENES`: ``full``, the default, ``imaging``, ``one_way``,
+``rigid``) or ``effects`` (a list of effect names, see :mod:`envs.effects`: a scene
+simulates only the effects it calls for, and a task whose terms need an effect the scene
+lacks is refused), ``max_translation_m`` and ``max_rotation_rad`` (the action's scale), the
+imaging geometry ``aperture_m``, ``imaging_depth_m``, ``slice_thickness_m``, and ``image``
+(True, or an :class:`envs.ultrasound.BModeConfig`: observe a B-mode image of the slice under
+the probe; off by default, and then never computed; with it, ``rgb_array`` frames show the
+image to the right of the 3D view, at the frame's height), ``domain_randomization`` (True, a
+dict or an :class:`envs.randomization.DomainRandomization`: each reset draws the tissue's
+and lesions' stiffness and the lesions' places, and the F/T sensor and probe pose the policy
+observes are noisy; off by default).
 
 Threads: an environment applies the process's thread policy (``tissue.configure_threads()``)
 before it builds its tissue: numba's kernels on Intel TBB, which lets vector environments
@@ -67,7 +67,7 @@ from envs.randomization import DomainRandomization, Randomizer
 from envs.rendering import CAMERAS, SceneRenderer, beside
 from envs.rigid import RigidCoupling
 from envs.rotations import axis_angle, pointing_down, quat_matrix, rotation_angle, turn_matrix
-from envs.scene import SceneConfig, build_scene, scene_names
+from envs.scene import HOME_KEY, ROBOT_PREFIX, SceneConfig, build_scene, scene_names
 from envs.ultrasound import BModeConfig, BModeImager
 
 #: A seed configuration of the default arm for the probe over the phantom, pointing down;
@@ -248,11 +248,16 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         self.camera_name = camera_name
         self._renderer: SceneRenderer | None = None
         self._frame_size = (width, height)
-        self.action_space = spaces.Box(-1.0, 1.0, shape=(6,), dtype=np.float32)
+        #: The action's length: 6 (the probe's motion) in ``cartesian_impedance`` mode, one
+        #: per joint in ``joint_delta`` mode.
+        self.action_size = (
+            6 if self.controller_config.mode == "cartesian_impedance" else self.joint_count
+        )
+        self.action_space = spaces.Box(-1.0, 1.0, shape=(self.action_size,), dtype=np.float32)
         self.observation_space = spaces.Dict(self._observation_spaces())  # type: ignore[assignment]
         self._start_pos = np.zeros(3)
         self._start_rot = np.eye(3)
-        self._last_action = np.zeros(6)
+        self._last_action = np.zeros(self.action_size)
         #: Wall time of the last step's parts [s] (not in ``info``: not deterministic).
         self.last_timing: dict[str, float] = {}
 
@@ -380,9 +385,15 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
     # ------------------------------------------------------------------ the arm
 
     def _solve_home(self) -> NDArray[np.float64]:
-        """Joint angles with the probe hovering over the phantom, pointing down."""
-        seed = np.zeros(self.joint_count)
-        seed[: min(6, self.joint_count)] = HOME_SEED_RAD[: self.joint_count]
+        """Joint angles with the probe hovering over the phantom, pointing down: IK from the
+        arm's own keyframe ``home`` where its MJCF has one (its joints' angles), else from
+        :data:`HOME_SEED_RAD` (the UR5e's; joints past the sixth at zero)."""
+        key = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_KEY, ROBOT_PREFIX + HOME_KEY)
+        if key >= 0:
+            seed = self.model.key_qpos[key][self.names.joint_qpos].astype(np.float64)
+        else:
+            seed = np.zeros(self.joint_count)
+            seed[: min(6, self.joint_count)] = HOME_SEED_RAD[: self.joint_count]
         rotation = pointing_down()
         q, error = solve_ik(
             self.model, self.data, self.names, np.array(HOME_PROBE_M), rotation, seed
@@ -418,7 +429,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         self.coupling.reset()
         self._start_pos = self.data.site_xpos[self.names.probe_site].copy()
         self._start_rot = self.data.site_xmat[self.names.probe_site].reshape(3, 3).copy()
-        self._last_action = np.zeros(6)
+        self._last_action = np.zeros(self.action_size)
 
     def _apply_action(self, action: NDArray[np.float64]) -> None:
         """Move the controller's target by the action (see :class:`ActionConfig`)."""
@@ -436,7 +447,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
             position, rotation = self._clip_target(position, rotation)
             self.controller.set_target(position, rotation)
         else:
-            step = action[: self.joint_count] * self.action_config.max_joint_step_rad
+            step = action * self.action_config.max_joint_step_rad
             ranges = self.names.joint_ranges
             self.controller.target_q = np.clip(
                 self.controller.target_q + step, ranges[:, 0], ranges[:, 1]
@@ -483,8 +494,11 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
 
     def _check_action(self, action: Any) -> NDArray[np.float64]:
         values = np.asarray(action, dtype=np.float64).reshape(-1)
-        if values.shape != (6,):
-            raise EnvConfigError(f"an action is 6 numbers in [-1, 1]; got shape {np.shape(action)}")
+        if values.shape != (self.action_size,):
+            raise EnvConfigError(
+                f"an action is {self.action_size} numbers in [-1, 1] "
+                f"({self.controller_config.mode} mode); got shape {np.shape(action)}"
+            )
         if not np.all(np.isfinite(values)):
             raise EnvConfigError(
                 f"an action must be finite; got {values.tolist()} (NaN or inf: check the policy)"

@@ -32,6 +32,11 @@ ASSETS = Path(__file__).resolve().parents[1] / "assets"
 #: The default arm: the UR5e's kinematics and dynamics in primitive geometry.
 UR5E_PATH = ASSETS / "robots" / "ur5e.xml"
 UR5E_FLANGE_SITE = "flange"
+#: A redundant 7-joint arm of the UR5e's dimensions (an upper-arm roll added), for arms other
+#: than the default: ``gymnasium.make(..., robot=ARM7_PATH)``.
+ARM7_PATH = ASSETS / "robots" / "arm7.xml"
+#: The keyframe of an arm's MJCF whose joint angles seed its home pose's IK, where it has one.
+HOME_KEY = "home"
 
 # The linear probe as drawn and weighed (the tissue's contact shape is the same face: 52.9 x
 # 13.2 mm, backed by an 80 mm housing; tissue.probe.linear_probe).

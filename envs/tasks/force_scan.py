@@ -151,7 +151,8 @@ class ForceScanEnv(ProbeEnv):
     the target at 500 Hz; the target stays within 60 mm sideways, 35 mm in and 20 mm out of
     the start pose and 75 degrees of its orientation (the skin turns up to 55 along a
     path). ``control_mode="joint_delta"``: the
-    action moves the joint targets by up to 0.05 rad per step.
+    action is one number per joint of the arm (6 for the default), moving its target by up
+    to 0.05 rad per step.
 
     ## Observation space
 
@@ -161,7 +162,7 @@ class ForceScanEnv(ProbeEnv):
     | --- | --- | --- |
     | ``probe_pose`` | (7,) | probe position [m] (phantom frame) and quaternion (w, x, y, z) |
     | ``wrench`` | (6,) | F/T force [N], torque [N m] about the face centre, probe frame |
-    | ``joint_pos``, ``joint_vel`` | (6,) | the arm's joints [rad], [rad/s] |
+    | ``joint_pos``, ``joint_vel`` | (n,) | the arm's n joints (6 by default) [rad], [rad/s] |
     | ``path`` | (9,) | the path's end [m], the skin's normal, progress, length [m], share |
 
     The phantom frame has its origin at the centre of the phantom's base; the quaternion is

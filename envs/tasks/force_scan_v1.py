@@ -105,7 +105,7 @@ class ForceScanV1Env(ForceScanEnv):
 
     | key | shape | meaning |
     | --- | --- | --- |
-    | ``last_action`` | (6,) | the action of the last step (zeros after a reset) |
+    | ``last_action`` | (6,) | the last step's action (zeros after a reset; as the action's) |
     | ``force_history`` | (4,) | the normal contact force [N] now and at the last 3 steps |
 
     ## Rewards
@@ -170,7 +170,7 @@ class ForceScanV1Env(ForceScanEnv):
 
     def _observation_spaces(self) -> dict[str, spaces.Space]:
         observed = super()._observation_spaces()
-        observed["last_action"] = spaces.Box(-1.0, 1.0, shape=(6,), dtype=np.float32)
+        observed["last_action"] = spaces.Box(-1.0, 1.0, shape=(self.action_size,), dtype=np.float32)
         observed["force_history"] = spaces.Box(
             0.0, FORCE_BOUND_N, shape=(FORCE_HISTORY,), dtype=np.float32
         )

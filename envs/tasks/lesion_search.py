@@ -139,8 +139,8 @@ class LesionSearchEnv(ProbeEnv):
     (``max_translation_m``, ``max_rotation_rad``). A Cartesian impedance controller (3000
     N/m, 60 N m/rad, critically damped, gravity compensated) tracks the target at 500 Hz;
     the target stays within 40 mm sideways, 35 mm in and 20 mm out of the start pose and 30
-    degrees of its orientation. ``control_mode="joint_delta"``: the action moves the joint
-    targets by up to 0.05 rad per step.
+    degrees of its orientation. ``control_mode="joint_delta"``: the action is one number per
+    joint of the arm (6 for the default), moving its target by up to 0.05 rad per step.
 
     ## Observation space
 
@@ -150,7 +150,7 @@ class LesionSearchEnv(ProbeEnv):
     | --- | --- | --- |
     | ``probe_pose`` | (7,) | probe position [m] (phantom frame) and quaternion (w, x, y, z) |
     | ``wrench`` | (6,) | F/T force [N], torque [N m] about the face centre, probe frame |
-    | ``joint_pos``, ``joint_vel`` | (6,) | the arm's joints [rad], [rad/s] |
+    | ``joint_pos``, ``joint_vel`` | (n,) | the arm's n joints (6 by default) [rad], [rad/s] |
     | ``lesion`` | (4,) | target lesion in the image: lateral, depth, out-of-plane [m], visible |
 
     The phantom frame has its origin at the centre of the phantom's base, on the table; the

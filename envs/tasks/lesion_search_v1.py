@@ -100,7 +100,7 @@ class LesionSearchV1Env(LesionSearchEnv):
 
     | key | shape | meaning |
     | --- | --- | --- |
-    | ``last_action`` | (6,) | the action of the last step (zeros after a reset) |
+    | ``last_action`` | (6,) | the last step's action (zeros after a reset; as the action's) |
     | ``scan_offset`` | (3,) | the probe's position from its start, in the start's probe frame [m] |
     | ``scan_extent`` | (2,) | the least and greatest ``scan_offset[0]`` reached this episode [m] |
 
@@ -178,7 +178,7 @@ class LesionSearchV1Env(LesionSearchEnv):
     def _observation_spaces(self) -> dict[str, spaces.Space]:
         observed = super()._observation_spaces()
         bound = SCAN_BOUND_M
-        observed["last_action"] = spaces.Box(-1.0, 1.0, shape=(6,), dtype=np.float32)
+        observed["last_action"] = spaces.Box(-1.0, 1.0, shape=(self.action_size,), dtype=np.float32)
         observed["scan_offset"] = spaces.Box(-bound, bound, shape=(3,), dtype=np.float32)
         observed["scan_extent"] = spaces.Box(-bound, bound, shape=(2,), dtype=np.float32)
         return observed
