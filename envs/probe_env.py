@@ -2,8 +2,13 @@
 
 An arm (:mod:`envs.scene`) holds the linear probe, driven by a controller
 (:mod:`envs.controller`) and coupled two ways to the FE breast (:mod:`envs.coupling`). A task
-(:mod:`envs.tasks`) subclasses :class:`ProbeEnv` and says where an episode starts, what is
-observed beyond the common terms, what is rewarded and when it ends. Each observation and
+(:mod:`envs.tasks`) subclasses :class:`ProbeEnv` and declares; :meth:`ProbeEnv.step` owns
+the step loop (dm_control's task / environment split). A task's declarations: its config
+(``task_config_type``), ``reset`` (where an episode starts), ``_observation_spaces`` and
+``_observation`` (what is observed beyond the common terms), ``_track`` (its state after a
+step), ``_succeeded``, ``_reward_terms`` (named terms, the reward their sum) and ``_info``;
+the loop adds the common failures (the tissue step not ``ok``, the force over
+``hard_force_n``, a non-finite arm) and termination. Each observation and
 reward term declares the simulated effects it needs (:data:`envs.effects.EFFECTS`).
 
 Keyword arguments common to every task (unknown ones are errors that list the valid ones):
@@ -95,6 +100,26 @@ COLLISION_EDGE_M = 0.002
 #: Limits of a wrench observation [N, N m] and a joint velocity [rad/s] (the spaces' bounds).
 WRENCH_LIMIT = 200.0
 JOINT_VELOCITY_LIMIT = 20.0
+
+
+@dataclass(frozen=True)
+class StepState:
+    """What one step measured, as the task's declarations (:meth:`ProbeEnv._track`,
+    :meth:`ProbeEnv._succeeded`, :meth:`ProbeEnv._reward_terms`) receive it.
+
+    Attributes:
+        action: the action taken, clipped to the box, (action_size,).
+        tissue_step: the tissue's step (None for a state a test builds).
+        force_n: the contact force's magnitude [N].
+        normal_n: the contact force along the probe's pressing axis [N] (positive pressing).
+        finite: whether the arm's state is finite after the step.
+    """
+
+    action: NDArray[np.float64]
+    tissue_step: tissue.TissueStep | None
+    force_n: float
+    normal_n: float
+    finite: bool = True
 
 
 @dataclass(frozen=True)
@@ -258,6 +283,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         self._start_pos = np.zeros(3)
         self._start_rot = np.eye(3)
         self._last_action = np.zeros(self.action_size)
+        self._held = 0
         #: Wall time of the last step's parts [s] (not in ``info``: not deterministic).
         self.last_timing: dict[str, float] = {}
 
@@ -491,6 +517,78 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         self.place_probe(self._start_pos, self._start_rot)
 
     # ------------------------------------------------------------------ stepping
+
+    def step(
+        self, action: Any
+    ) -> tuple[dict[str, NDArray[Any]], float, bool, bool, dict[str, Any]]:
+        """One step of every task: the action moves the arm and the tissue; the common
+        failures (the tissue step not ``ok``, the contact force over the task's
+        ``hard_force_n``, a non-finite arm) are found; then the task's declarations track
+        its state (:meth:`_track`), judge success (:meth:`_succeeded`) and give the reward's
+        terms (:meth:`_reward_terms`), whose sum is the reward. Terminated on success or
+        failure; truncation is the TimeLimit wrapper's (``max_episode_steps``)."""
+        values = self._check_action(action)
+        step = self._advance(values)
+        observed_from = time.perf_counter()
+        state = StepState(
+            action=values,
+            tissue_step=step,
+            force_n=self.contact_force_n(step),
+            normal_n=self.normal_force_n(step),
+            finite=bool(np.isfinite(self.data.qpos).all() and np.isfinite(self.data.qvel).all()),
+        )
+        failure: dict[str, Any] = {}
+        if step.status is not tissue.StepStatus.OK:
+            failure["tissue_unstable"] = step.status.value
+        if state.force_n > self.task_config.hard_force_n:
+            failure["force_exceeded"] = True
+        if not state.finite:
+            failure["robot_unstable"] = True
+        self._track(state)
+        success = self._succeeded(state, bool(failure))
+        terms = self._reward_terms(state, success, bool(failure))
+        reward = float(sum(terms.values()))
+        self._last_action = values
+        terminated = success or bool(failure)
+        if not state.finite:
+            self._make_finite()
+        observation = self._observation()
+        info = self._info(step, terms, success, failure)
+        self.last_timing["observation_s"] = time.perf_counter() - observed_from
+        return observation, reward, terminated, False, info
+
+    # A task declares these (and its reset and observation spaces).
+
+    def _track(self, state: StepState) -> None:
+        """Update the task's own state from the step (a lesion's place, a path's progress)."""
+
+    def _succeeded(self, state: StepState, failed: bool) -> bool:
+        """Whether the episode succeeds on this step (never on a failing one)."""
+        raise NotImplementedError
+
+    def _reward_terms(self, state: StepState, success: bool, failed: bool) -> dict[str, float]:
+        """The reward's named terms (weighted; the reward is their sum)."""
+        raise NotImplementedError
+
+    def _observation(self) -> dict[str, NDArray[Any]]:
+        """The observation (the common terms, :meth:`_common_observation`, and the task's)."""
+        raise NotImplementedError
+
+    def _info(
+        self,
+        step: tissue.TissueStep | None,
+        terms: dict[str, float],
+        success: bool,
+        failure: dict[str, Any] | None = None,
+    ) -> dict[str, Any]:
+        """The step's ``info``: success, the reward's terms, the task's figures, the failure."""
+        raise NotImplementedError
+
+    def _held_for(self, in_band: bool, failed: bool, steps: int) -> bool:
+        """Count the steps in a row spent in the goal's band without failing
+        (``self._held``, zeroed by the task's reset); True once they reach ``steps``."""
+        self._held = self._held + 1 if in_band and not failed else 0
+        return self._held >= steps
 
     def _check_action(self, action: Any) -> NDArray[np.float64]:
         values = np.asarray(action, dtype=np.float64).reshape(-1)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -14,7 +13,7 @@ from numpy.typing import NDArray
 import tissue
 from envs.errors import EnvConfigError, check_failure_reward
 from envs.observations import LesionInImage, lesion_in_image, tissue_step_info
-from envs.probe_env import ProbeEnv
+from envs.probe_env import ProbeEnv, StepState
 from envs.rotations import quat_matrix, turn_matrix
 
 #: The registered episode length [steps] (5 s at 20 ms).
@@ -272,41 +271,18 @@ class BreastCompressEnv(ProbeEnv):
         self._lesion_now = self._lesion(0.0)
         return self._observation(), self._info(None, {}, False) | self._variation_info()
 
-    def step(
-        self, action: Any
-    ) -> tuple[dict[str, NDArray[Any]], float, bool, bool, dict[str, Any]]:
-        values = self._check_action(action)
-        step = self._advance(values)
-        observed_from = time.perf_counter()
-        cfg = self.task_config
-        force = self.contact_force_n(step)
-        self._lesion_now = self._lesion(force)
-        lesion = self._lesion_now
-        finite = bool(np.all(np.isfinite(self.data.qpos)) and np.all(np.isfinite(self.data.qvel)))
-        failure = {}
-        if step.status is not tissue.StepStatus.OK:
-            failure["tissue_unstable"] = step.status.value
-        if force > cfg.hard_force_n:
-            failure["force_exceeded"] = True
-        if not finite:
-            failure["robot_unstable"] = True
+    def _track(self, state: StepState) -> None:
+        self._lesion_now = self._lesion(state.force_n)
+
+    def _succeeded(self, state: StepState, failed: bool) -> bool:
+        cfg, lesion = self.task_config, self._lesion_now
+        assert lesion is not None  # tracked on every step
         in_band = (
             lesion.visible
             and abs(lesion.true_depth_m - self._target_depth) <= cfg.depth_tolerance_m
-            and force <= cfg.safety_force_n
+            and state.force_n <= cfg.safety_force_n
         )
-        self._held = self._held + 1 if in_band and not failure else 0
-        success = self._held >= cfg.hold_steps
-        terms = self._reward_terms(values, lesion, force, success, bool(failure))
-        reward = float(sum(terms.values()))
-        self._last_action = values
-        terminated = success or bool(failure)
-        if not finite:
-            self._make_finite()
-        observation = self._observation()
-        info = self._info(step, terms, success, failure)
-        self.last_timing["observation_s"] = time.perf_counter() - observed_from
-        return observation, reward, terminated, False, info
+        return self._held_for(in_band, failed, cfg.hold_steps)
 
     # ------------------------------------------------------------------ terms
 
@@ -322,15 +298,10 @@ class BreastCompressEnv(ProbeEnv):
             self.imaging,
         )
 
-    def _reward_terms(
-        self,
-        action: NDArray[np.float64],
-        lesion: LesionInImage,
-        force: float,
-        success: bool,
-        failed: bool,
-    ) -> dict[str, float]:
+    def _reward_terms(self, state: StepState, success: bool, failed: bool) -> dict[str, float]:
         cfg, weights = self.task_config, self.WEIGHTS
+        lesion, force, action = self._lesion_now, state.force_n, state.action
+        assert lesion is not None  # tracked on every step
         if lesion.visible:
             depth = min(1.0, abs(lesion.true_depth_m - self._target_depth) / 0.01)
             centring = min(1.0, abs(lesion.true_lateral_m) / (0.5 * self.imaging.aperture_m))

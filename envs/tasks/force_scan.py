@@ -4,7 +4,6 @@ kept normal to the skin."""
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -21,7 +20,7 @@ from envs.errors import (
     number_pair,
 )
 from envs.observations import tissue_step_info
-from envs.probe_env import ProbeEnv
+from envs.probe_env import ProbeEnv, StepState
 from envs.rotations import quat_matrix
 
 #: The registered episode length [steps] (4 s at 20 ms).
@@ -291,6 +290,7 @@ class ForceScanEnv(ProbeEnv):
         self._length = 0.0
         self._skin_length = 0.0
         self._progress = 0.0
+        self._progress_before = 0.0
         self._tilt = 0.0
         self._normal = np.array([0.0, 0.0, -1.0])
         self._started = False
@@ -333,6 +333,7 @@ class ForceScanEnv(ProbeEnv):
         self._chord = chord / self._length
         self.place_probe(position, rotation)
         self._progress = 0.0
+        self._progress_before = 0.0
         self._tilt = self._tilt_now()
         self._started = False
         self._counted = 0
@@ -368,51 +369,28 @@ class ForceScanEnv(ProbeEnv):
             left -= stride
         return point, normal
 
-    def step(
-        self, action: Any
-    ) -> tuple[dict[str, NDArray[np.float32]], float, bool, bool, dict[str, Any]]:
-        values = self._check_action(action)
-        step = self._advance(values)
-        observed_from = time.perf_counter()
-        cfg = self.task_config
-        force = self.contact_force_n(step)
-        normal = self.normal_force_n(step)
-        finite = bool(np.all(np.isfinite(self.data.qpos)) and np.all(np.isfinite(self.data.qvel)))
-        failure: dict[str, Any] = {}
-        if step.status is not tissue.StepStatus.OK:
-            failure["tissue_unstable"] = step.status.value
-        if force > cfg.hard_force_n:
-            failure["force_exceeded"] = True
-        if not finite:
-            failure["robot_unstable"] = True
-        before = self._progress
-        if finite:
+    def _track(self, state: StepState) -> None:
+        self._progress_before = self._progress
+        if state.finite:
             self._progress = self._progress_now()
             self._tilt = self._tilt_now()
+
+    def _succeeded(self, state: StepState, failed: bool) -> bool:
+        cfg = self.task_config
         low, high = cfg.force_band_n
-        in_band = low <= normal <= high
+        in_band = low <= state.normal_n <= high
         if in_band:
             self._started = True
         if self._started:
             self._counted += 1
             self._good += int(in_band and self._tilt <= cfg.max_tilt_rad)
-        success = (
-            not failure
+        return (
+            not failed
             and self._started
             and in_band
             and self._remaining() <= cfg.end_tolerance_m
             and self._good_share() >= cfg.min_good_share
         )
-        terms = self._reward_terms(values, before, normal, success, bool(failure))
-        reward = float(sum(terms.values()))
-        self._last_action = values
-        terminated = success or bool(failure)
-        if not finite:
-            self._make_finite()
-        observation = self._observation()
-        info = self._info(step, terms, success, failure)
-        self.last_timing["observation_s"] = time.perf_counter() - observed_from
-        return observation, reward, terminated, False, info
 
     # ------------------------------------------------------------------ terms
 
@@ -454,15 +432,9 @@ class ForceScanEnv(ProbeEnv):
     def _good_share(self) -> float:
         return 1.0 if self._counted == 0 else self._good / self._counted
 
-    def _reward_terms(
-        self,
-        action: NDArray[np.float64],
-        before: float,
-        normal: float,
-        success: bool,
-        failed: bool,
-    ) -> dict[str, float]:
+    def _reward_terms(self, state: StepState, success: bool, failed: bool) -> dict[str, float]:
         cfg, weights = self.task_config, self.WEIGHTS
+        before, normal, action = self._progress_before, state.normal_n, state.action
         low, high = cfg.force_band_n
         outside = max(0.0, low - normal, normal - high) / (high - low)
         excess = max(0.0, self._tilt - cfg.max_tilt_rad) / cfg.max_tilt_rad

@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 
 import tissue
 from envs.errors import EnvConfigError, check_positive, finite_number
+from envs.probe_env import StepState
 from envs.tasks.force_scan import ForceScanConfig, ForceScanEnv
 
 #: v1's translation at |a| = 1: 2 mm a step (v0: 5 mm), so that a fresh policy's exploring
@@ -201,15 +202,8 @@ class ForceScanV1Env(ForceScanEnv):
         excess = min(TILT_CAP, max(0.0, tilt_rad - cfg.max_tilt_rad) / cfg.max_tilt_rad)
         return -cfg.progress_weight * (left + outside + excess)
 
-    def _reward_terms(
-        self,
-        action: NDArray[np.float64],
-        before: float,
-        normal: float,
-        success: bool,
-        failed: bool,
-    ) -> dict[str, float]:
-        cfg = self.task_config
+    def _reward_terms(self, state: StepState, success: bool, failed: bool) -> dict[str, float]:
+        cfg, normal, action = self.task_config, state.normal_n, state.action
         potential = self.potential(self._remaining(), normal, self._tilt)
         shaping = cfg.shaping_gamma * potential - self._potential
         self._potential = potential

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 import numbers
-import time
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -21,7 +20,7 @@ from envs.errors import (
     number_pair,
 )
 from envs.observations import LesionInImage, lesion_in_image, tissue_step_info
-from envs.probe_env import ProbeEnv
+from envs.probe_env import ProbeEnv, StepState
 from envs.rotations import quat_matrix, turn_matrix
 
 #: The registered episode length [steps] (6 s at 20 ms).
@@ -299,43 +298,19 @@ class LesionSearchEnv(ProbeEnv):
         roll = math.atan2(-float(wanted @ unrolled[:, 2]), float(wanted @ unrolled[:, 0]))
         return self.tissue.touching_pose(aim, direction, roll_rad=roll)
 
-    def step(
-        self, action: Any
-    ) -> tuple[dict[str, NDArray[np.float32]], float, bool, bool, dict[str, Any]]:
-        values = self._check_action(action)
-        step = self._advance(values)
-        observed_from = time.perf_counter()
-        cfg = self.task_config
-        force = self.contact_force_n(step)
-        normal = self.normal_force_n(step)
-        self._lesion_now = self._lesion(force)
-        lesion = self._lesion_now
-        finite = bool(np.all(np.isfinite(self.data.qpos)) and np.all(np.isfinite(self.data.qvel)))
-        failure: dict[str, Any] = {}
-        if step.status is not tissue.StepStatus.OK:
-            failure["tissue_unstable"] = step.status.value
-        if force > cfg.hard_force_n:
-            failure["force_exceeded"] = True
-        if not finite:
-            failure["robot_unstable"] = True
+    def _track(self, state: StepState) -> None:
+        self._lesion_now = self._lesion(state.force_n)
+
+    def _succeeded(self, state: StepState, failed: bool) -> bool:
+        cfg, lesion = self.task_config, self._lesion_now
+        assert lesion is not None  # tracked on every step
         low, high = cfg.force_band_n
         in_band = (
             lesion.visible
             and abs(lesion.true_lateral_m) <= cfg.centre_tolerance_m
-            and low <= normal <= high
+            and low <= state.normal_n <= high
         )
-        self._held = self._held + 1 if in_band and not failure else 0
-        success = self._held >= cfg.hold_steps
-        terms = self._reward_terms(values, lesion, normal, success, bool(failure))
-        reward = float(sum(terms.values()))
-        self._last_action = values
-        terminated = success or bool(failure)
-        if not finite:
-            self._make_finite()
-        observation = self._observation()
-        info = self._info(step, terms, success, failure)
-        self.last_timing["observation_s"] = time.perf_counter() - observed_from
-        return observation, reward, terminated, False, info
+        return self._held_for(in_band, failed, cfg.hold_steps)
 
     # ------------------------------------------------------------------ terms
 
@@ -351,15 +326,10 @@ class LesionSearchEnv(ProbeEnv):
             self.imaging,
         )
 
-    def _reward_terms(
-        self,
-        action: NDArray[np.float64],
-        lesion: LesionInImage,
-        normal: float,
-        success: bool,
-        failed: bool,
-    ) -> dict[str, float]:
+    def _reward_terms(self, state: StepState, success: bool, failed: bool) -> dict[str, float]:
         cfg, weights = self.task_config, self.WEIGHTS
+        lesion, normal, action = self._lesion_now, state.normal_n, state.action
+        assert lesion is not None  # tracked on every step
         if lesion.visible:
             centring = min(1.0, abs(lesion.true_lateral_m) / (0.5 * self.imaging.aperture_m))
         else:

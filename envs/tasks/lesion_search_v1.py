@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 import tissue
 from envs.errors import EnvConfigError, check_positive, finite_number
 from envs.observations import LesionInImage
+from envs.probe_env import StepState
 from envs.tasks.lesion_search import LesionSearchConfig, LesionSearchEnv
 
 #: v1's action scale at |a| = 1: 2 mm and 0.02 rad a step (v0: 5 mm and 0.05 rad), so that
@@ -214,15 +215,10 @@ class LesionSearchV1Env(LesionSearchEnv):
         outside = min(1.0, max(0.0, low - normal, normal - high) / (high - low))
         return -cfg.progress_weight * (centring + outside)
 
-    def _reward_terms(
-        self,
-        action: NDArray[np.float64],
-        lesion: LesionInImage,
-        normal: float,
-        success: bool,
-        failed: bool,
-    ) -> dict[str, float]:
-        cfg = self.task_config
+    def _reward_terms(self, state: StepState, success: bool, failed: bool) -> dict[str, float]:
+        cfg, lesion = self.task_config, self._lesion_now
+        normal, action = state.normal_n, state.action
+        assert lesion is not None  # tracked on every step
         potential = self.potential(lesion, normal)
         shaping = cfg.shaping_gamma * potential - self._potential
         self._potential = potential

@@ -12,6 +12,7 @@ import pytest
 
 import envs  # noqa: F401 - registers the environments
 from envs.observations import LesionInImage
+from envs.probe_env import StepState
 
 MESH = 623
 STILL = np.zeros(6)
@@ -25,6 +26,15 @@ def _env(env_id: str):
     unwrapped = env.unwrapped
     unwrapped._last_action = STILL.copy()
     return env, unwrapped
+
+
+def _terms(unwrapped, action, force_n: float, success: bool, failed: bool, **state):
+    """The task's terms for a step that took ``action`` and measured ``force_n`` (as the
+    contact force and its normal part), the task's own state set from ``state``."""
+    for name, value in state.items():
+        setattr(unwrapped, name, value)
+    step = StepState(np.asarray(action, dtype=np.float64), None, force_n, force_n)
+    return unwrapped._reward_terms(step, success, failed)
 
 
 def _lesion(lateral_m: float, depth_m: float, visible: bool = True) -> LesionInImage:
@@ -41,25 +51,25 @@ def test_breast_compress_v0_terms_at_known_states() -> None:
     env, unwrapped = _env("probegym/BreastCompress-v0")
     target = unwrapped._target_depth
     lesion = _lesion(0.005, target + 0.004)
-    terms = unwrapped._reward_terms(JOLT, lesion, 7.5, False, False)
+    terms = _terms(unwrapped, JOLT, 7.5, False, False, _lesion_now=lesion)
     assert terms == pytest.approx(
         {"depth_error": -0.2, "centring": -0.05, "force": -0.1, "smoothness": -0.1 / 24,
          "success": 0.0, "failure": 0.0}
     )  # fmt: skip
     # Out of view: the depth and centring terms at their floor; the force capped at 10 N.
-    terms = unwrapped._reward_terms(STILL, _lesion(0.0, 0.0, False), 20.0, False, True)
+    terms = _terms(unwrapped, STILL, 20.0, False, True, _lesion_now=_lesion(0.0, 0.0, False))
     assert terms == pytest.approx(
         {"depth_error": -0.5, "centring": -0.2, "force": -0.2, "smoothness": 0.0,
          "success": 0.0, "failure": -251.0}
     )  # fmt: skip
     # At the goal: every shaping term 0, the success +1.
-    terms = unwrapped._reward_terms(STILL, _lesion(0.0, target), 3.0, True, False)
+    terms = _terms(unwrapped, STILL, 3.0, True, False, _lesion_now=_lesion(0.0, target))
     assert terms == {
         "depth_error": -0.0, "centring": -0.0, "force": -0.0, "smoothness": -0.0,
         "success": 1.0, "failure": 0.0,
     }  # fmt: skip
     # A step's reward but the last lies in [-1, 0]: the worst non-failing step.
-    worst = unwrapped._reward_terms(-JOLT * 1e3, _lesion(0.0, 0.0, False), 1e3, False, False)
+    worst = _terms(unwrapped, -JOLT * 1e3, 1e3, False, False, _lesion_now=_lesion(0.0, 0.0, False))
     assert sum(worst.values()) == pytest.approx(-1.0)
     env.close()
 
@@ -69,18 +79,18 @@ def test_lesion_search_v0_terms_at_known_states() -> None:
     0.5-4 N as a share of the band's 3.5 N (capped at 1), smoothness -0.1 x change / 4,
     success +1, failure -(300 + 1)."""
     env, unwrapped = _env("probegym/LesionSearch-v0")
-    terms = unwrapped._reward_terms(JOLT, _lesion(-0.01, 0.02), 5.75, False, False)
+    terms = _terms(unwrapped, JOLT, 5.75, False, False, _lesion_now=_lesion(-0.01, 0.02))
     assert terms == pytest.approx(
         {"centring": -0.25, "force": -0.15, "smoothness": -0.1 / 24, "success": 0.0,
          "failure": 0.0}
     )  # fmt: skip
-    terms = unwrapped._reward_terms(STILL, _lesion(0.0, 0.0, False), 0.0, False, True)
+    terms = _terms(unwrapped, STILL, 0.0, False, True, _lesion_now=_lesion(0.0, 0.0, False))
     # Out of view, no contact: 0.5 N below the band is 1/7 of its width.
     assert terms == pytest.approx(
         {"centring": -0.5, "force": -0.3 / 7, "smoothness": 0.0, "success": 0.0,
          "failure": -301.0}
     )  # fmt: skip
-    far = unwrapped._reward_terms(STILL, _lesion(0.1, 0.02), 100.0, True, False)
+    far = _terms(unwrapped, STILL, 100.0, True, False, _lesion_now=_lesion(0.1, 0.02))
     assert far["centring"] == -0.5 and far["force"] == -0.3 and far["success"] == 1.0
     env.close()
 
@@ -93,18 +103,18 @@ def test_force_scan_v0_terms_at_known_states() -> None:
     length = unwrapped._length
     unwrapped._progress = 0.25 * length
     unwrapped._tilt = math.radians(7.5)
-    terms = unwrapped._reward_terms(JOLT, 0.0, 3.5, False, False)
+    terms = _terms(unwrapped, JOLT, 3.5, False, False, _progress_before=0.0)
     assert terms == pytest.approx(
         {"progress": 0.25, "force": -0.075, "tilt": -0.15, "smoothness": -0.1 / 24,
          "success": 0.0, "failure": 0.0}
     )  # fmt: skip
     # Going back costs what going forward earned; far out of band and tilted: capped.
     unwrapped._tilt = math.radians(60.0)
-    terms = unwrapped._reward_terms(STILL, 0.5 * length, 0.0, False, True)
+    terms = _terms(unwrapped, STILL, 0.0, False, True, _progress_before=0.5 * length)
     assert terms == pytest.approx(
         {"progress": -0.25, "force": -0.15, "tilt": -0.3, "smoothness": 0.0, "success": 0.0,
          "failure": -201.0}
     )  # fmt: skip
-    terms = unwrapped._reward_terms(STILL, 0.25 * length, 30.0, False, False)
+    terms = _terms(unwrapped, STILL, 30.0, False, False, _progress_before=0.25 * length)
     assert terms["force"] == -0.3 and terms["progress"] == 0.0
     env.close()
