@@ -15,6 +15,7 @@ Importing this package registers the environments::
 | ``probegym/ForceScan-v0`` | sweep a line on the skin, the force in a band, the face normal to it |
 | ``probegym/LesionSearch-v1`` | v0's task with a shaped reward, the sweep observed, 2 mm a step |
 | ``probegym/ForceScan-v1`` | v0's task with a shaped reward, the force's history, 2 mm a step |
+| ``probegym/BreastCompress-v1`` | v0's task, the compression asked at most 28 % of the depth |
 
 Every task takes ``domain_randomization=True`` (or a dict, or a :class:`DomainRandomization`):
 tissue and lesion stiffness, lesion placement, F/T noise and bias, probe pose noise, drawn
@@ -36,6 +37,7 @@ ENV_IDS = (
     "probegym/ForceScan-v0",
     "probegym/LesionSearch-v1",
     "probegym/ForceScan-v1",
+    "probegym/BreastCompress-v1",
 )
 
 
@@ -71,6 +73,13 @@ def _register() -> None:
             id="probegym/ForceScan-v1",
             entry_point="envs.tasks.force_scan_v1:ForceScanV1Env",
             max_episode_steps=_SCAN_STEPS,
+        )
+
+    if "probegym/BreastCompress-v1" not in gym.registry:
+        gym.register(
+            id="probegym/BreastCompress-v1",
+            entry_point="envs.tasks.breast_compress_v1:BreastCompressV1Env",
+            max_episode_steps=_COMPRESS_STEPS,
         )
 
 

@@ -190,7 +190,7 @@ def summary_markdown(summary: dict[str, Any], written: list[Path]) -> str:
                 f"{_mm(summary['centring_error_mean_m'])} (lesion to the image's centre line)",
             ]
         )
-    elif env_id.endswith("BreastCompress-v0"):
+    elif "/BreastCompress-" in env_id:
         table.rows.append(
             [
                 "centring error at the end",

@@ -17,6 +17,7 @@ SCRIPTED_POLICIES: dict[str, Callable[[], Any]] = {
     "probegym/ForceScan-v0": ForceScanPolicy,
     "probegym/LesionSearch-v1": lesion_search_v1_policy,
     "probegym/ForceScan-v1": force_scan_v1_policy,
+    "probegym/BreastCompress-v1": CompressionPolicy,
 }
 
 __all__ = [

@@ -42,6 +42,10 @@ class BreastCompressConfig:
         max_press_m: and into the tissue, along the start's pressing direction [m].
         max_lift_m: and away from it [m].
         max_turn_rad: how far the target may turn from the start's orientation [rad].
+        max_compression_strain: None (v0): the compression asked is the one drawn; a number
+            in (0, 1): at most this share of the lesion's depth under the probe at the start
+            (a shallow lesion asked to move 5-7 mm would need the tissue above it squeezed by
+            up to 47 %, beyond the safety force; docs/baselines.md).
     """
 
     target_lesions: tuple[int, ...] | None = None
@@ -57,9 +61,18 @@ class BreastCompressConfig:
     max_press_m: float = 0.035
     max_lift_m: float = 0.02
     max_turn_rad: float = math.radians(30.0)
+    max_compression_strain: float | None = None
 
     def __post_init__(self) -> None:
         check_failure_reward(self.failure_reward)
+        strain = self.max_compression_strain
+        if strain is not None and not (
+            isinstance(strain, (int, float)) and not isinstance(strain, bool) and 0.0 < strain < 1.0
+        ):
+            raise EnvConfigError(
+                f"max_compression_strain must be None or a share of the lesion's depth in "
+                f"(0, 1); got {strain!r}"
+            )
         low, high = self.compression_range_m
         if not (0.0 < low <= high < 0.05):
             raise EnvConfigError(
@@ -266,6 +279,8 @@ class BreastCompressEnv(ProbeEnv):
                 @ (self.tissue.lesion_centroids_m((self._target,))[0] - self._start_pos)
             )[1]
         )
+        if cfg.max_compression_strain is not None:
+            compression = min(compression, cfg.max_compression_strain * start_depth)
         self._target_depth = start_depth - compression
         self._held = 0
         self._lesion_now = self._lesion(0.0)

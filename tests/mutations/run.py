@@ -141,7 +141,7 @@ MUTATIONS = (
     ),
     Mutation(
         "the reward is not the sum of its logged terms",
-        "envs/tasks/breast_compress.py",
+        "envs/probe_env.py",
         "        reward = float(sum(terms.values()))",
         "        reward = float(sum(terms.values())) - 0.01",
         ("tests/envs/test_breast_compress.py", "-k", "same_seed and lm"),
