@@ -16,16 +16,18 @@ The closed set (:data:`EFFECTS`), and what is skipped without each:
   no reaction wrench is applied and no wrench stiffness is computed.
 - ``lesion_tracking``: the target lesion located in the image plane each step.
 - ``image``: the B-mode image of the slice under the probe; without it nothing is sliced.
-- ``damping``: the tissue's inertia and Rayleigh damping (the ``robust`` profile's
-  dynamics); the ``paper`` profile steps quasi-statically.
+- ``damping``: the tissue's inertia and Rayleigh damping (r_M = 0.1 /s, r_K = 0.1 s), under
+  either profile: the ``paper`` profile's one linearised backward-Euler solve a step and the
+  ``robust`` profile's Newton steps both integrate them (``tissue.sim``'s default, not
+  quasi-static; tests/tissue/test_profile_dynamics.py).
 - ``sliding``: the skin slides under the probe without friction (every contact method).
 - ``gravity``: not simulated (the phantom's rest shape was segmented under gravity).
 - ``stress``: not simulated (no stress field is recovered).
 
 ``damping`` and ``sliding`` are properties of the tissue model rather than switches: a scene
-that deforms has ``sliding`` and, under the ``robust`` profile, ``damping``; a scene that
-names one the tissue does not simulate is refused. ``gravity`` and ``stress`` are in the set
-so that a term may declare them, and a scene asking for them is refused with the reason.
+that deforms has both; a scene that names one without deformation is refused. ``gravity``
+and ``stress`` are in the set so that a term may declare them, and a scene asking for them
+is refused with the reason.
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ EFFECTS: dict[str, str] = {
     "force_feedback": "the tissue's reaction acts on the robot and its F/T sensor",
     "lesion_tracking": "the target lesion is located in the image plane",
     "image": "a B-mode ultrasound image of the slice under the probe",
-    "damping": "the tissue's inertia and Rayleigh damping (robust profile)",
+    "damping": "the tissue's inertia and Rayleigh damping (either profile)",
     "sliding": "the skin slides under the probe without friction",
     "gravity": "gravity on the tissue",
     "stress": "the tissue's stress field",
@@ -79,8 +81,8 @@ class Scene:
         return ", ".join(name for name in EFFECTS if name in self.effects)
 
 
-#: The named scenes (``gymnasium.make(..., scene="rigid")``). ``damping`` follows the
-#: profile (:func:`resolve_scene`).
+#: The named scenes (``gymnasium.make(..., scene="rigid")``). ``damping`` and ``sliding``
+#: come with ``deformation`` (:func:`resolve_scene`).
 SCENES: dict[str, Scene] = {
     scene.name: scene
     for scene in (
@@ -131,19 +133,17 @@ def resolve_scene(
     scene: str | Scene | None,
     effects: object,
     image: bool,
-    profile: str,
 ) -> Scene:
     """The scene an environment simulates, from ``scene=`` (a preset name or a
     :class:`Scene`) or ``effects=`` (a list), with the tissue's own effects filled in.
 
-    ``image=True`` adds ``image`` to a preset; ``damping`` is added when the breast deforms
-    under the ``robust`` profile, ``sliding`` whenever it deforms.
+    ``image=True`` adds ``image`` to a preset; ``damping`` and ``sliding`` are added whenever
+    the breast deforms (under either profile).
 
     Raises:
         EnvConfigError: both ``scene`` and ``effects`` given; an unknown preset or effect;
-            an effect the tissue cannot simulate (``gravity``, ``stress``; ``damping`` under
-            the quasi-static ``paper`` profile or without deformation); ``image`` or
-            ``sliding`` without deformation.
+            an effect the tissue cannot simulate (``gravity``, ``stress``); ``image``,
+            ``sliding`` or ``damping`` without deformation.
     """
     if scene is not None and effects is not None:
         raise EnvConfigError("give scene= (a preset) or effects= (a list), not both")
@@ -172,15 +172,8 @@ def resolve_scene(
                 f"scene {chosen.name!r} calls for {name!r} without 'deformation' (a rigid "
                 f"breast has no {name}); add 'deformation' or leave {name!r} out"
             )
-    if "damping" in wanted and profile != "robust":
-        raise EnvConfigError(
-            f"scene {chosen.name!r} calls for 'damping', but profile {profile!r} steps the "
-            f"tissue quasi-statically; use profile='robust' or leave 'damping' out"
-        )
     if deforms:
-        wanted.add("sliding")
-        if profile == "robust":
-            wanted.add("damping")
+        wanted.update(TISSUE_EFFECTS)
     return Scene(chosen.name, frozenset(wanted), chosen.description)
 
 

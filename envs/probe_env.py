@@ -235,7 +235,7 @@ class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
         # step evaluates any lesion.
         self.tissue.track_lesions(())
         #: What this environment simulates (:mod:`envs.effects`).
-        self.scene = resolve_scene(scene, effects, image is not False, profile)
+        self.scene = resolve_scene(scene, effects, image is not False)
         deforms = self.scene.has("deformation")
         self.model = build_scene(
             self.scene_config,
