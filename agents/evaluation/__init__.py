@@ -18,14 +18,8 @@ numbers, all but the timings (the ``timing_*`` fields, kept apart and labelled).
 """
 
 from agents.evaluation.command import add_evaluate_parser, run_evaluate
-from agents.evaluation.run import (
-    CSV_COLUMNS,
-    OUTPUT_FILES,
-    TIMING_PREFIX,
-    default_out,
-    evaluate,
-    without_timings,
-)
+from agents.evaluation.records import CSV_COLUMNS, OUTPUT_FILES, TIMING_PREFIX
+from agents.evaluation.run import default_out, evaluate, without_timings
 
 __all__ = [
     "CSV_COLUMNS",

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from agents.bench.report import MarkdownTable, code_revision
-from agents.evaluation.run import CSV_COLUMNS, OUTPUT_FILES, TIMING_PREFIX
+from agents.evaluation.records import CSV_COLUMNS, OUTPUT_FILES, TIMING_PREFIX
 from agents.outputs import readable, write_json
 
 #: The normal quantile of the success rate's two-sided 95 % interval.

@@ -102,8 +102,6 @@ def cell_table(records: list[dict[str, Any]]) -> str:
 
 def write_robot_report(out: Path, spec: StudySpec, records: list[dict[str, Any]]) -> None:
     """Write the robot study's tables, figures and summary into ``out``."""
-    from agents.study.robot_runner import summary_json
-
     configs = [c.value for c in spec.configs]
     records = [
         r for r in records
@@ -191,3 +189,26 @@ def plot_tracking(path: Path, records: list[dict[str, Any]]) -> None:
     figure.tight_layout()
     figure.savefig(path, dpi=110)
     plt.close(figure)
+
+
+def summary_json(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per cell for ``summary.json``: the figures the tables show."""
+    rows = []
+    for r in records:
+        tracking = r["tracking"]
+        rows.append(
+            {
+                "key": r["key"],
+                "status": r["status"],
+                "stability_percent": r["stability_percent"],
+                "kinematic_status": r["kinematic"]["status"],
+                "lesion_error_max_m": max(
+                    (e for e in r["lesion_error_m"] if e is not None), default=None
+                ),
+                "along_at_depth_max_m": max((abs(a) for a in tracking["along_m"]), default=None),
+                "along_motion_max_m": tracking["along_max_m"],
+                "across_motion_max_m": tracking["across_max_m"],
+                "orientation_motion_max_deg": tracking["orientation_max_deg"],
+            }
+        )
+    return rows

@@ -33,6 +33,7 @@ from agents.study.robot import (
     max_press_m,
     run_robot_cell,
 )
+from agents.study.robot_report import write_robot_report
 from agents.study.runner import RESULTS_FILE, SPEC_FILE, read_results, study_lesions
 from agents.study.spec import Cell, StudySpec
 from tissue import TissueSpec
@@ -198,8 +199,6 @@ def run_robot_study(
                 file.write(strict_json(record) + "\n")
             records.append(record)
             log(_cell_line(record))
-        from agents.study.robot_report import write_robot_report
-
         write_robot_report(out, spec, records)
     return RobotOutcome(records, len(cells) - len(failed), len(done), failed)
 
@@ -214,26 +213,3 @@ def _cell_line(record: dict[str, Any]) -> str:
         f"probe short of target {-1e3 * min(along, default=float('nan')):.2f} mm at depth, "
         f"{record['wall_s']:.1f} s"
     )
-
-
-def summary_json(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One row per cell for ``summary.json``: the figures the tables show."""
-    rows = []
-    for r in records:
-        tracking = r["tracking"]
-        rows.append(
-            {
-                "key": r["key"],
-                "status": r["status"],
-                "stability_percent": r["stability_percent"],
-                "kinematic_status": r["kinematic"]["status"],
-                "lesion_error_max_m": max(
-                    (e for e in r["lesion_error_m"] if e is not None), default=None
-                ),
-                "along_at_depth_max_m": max((abs(a) for a in tracking["along_m"]), default=None),
-                "along_motion_max_m": tracking["along_max_m"],
-                "across_motion_max_m": tracking["across_max_m"],
-                "orientation_motion_max_deg": tracking["orientation_max_deg"],
-            }
-        )
-    return rows

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import subprocess
 import sys
 from pathlib import Path
@@ -32,8 +33,6 @@ def test_tissue_imports_no_robot_or_learning_stack() -> None:
 
 def _imports(package: str) -> list[tuple[str, str, tuple[str, ...]]]:
     """(file, module imported, names imported) for every import in ``package``'s sources."""
-    import ast
-
     found = []
     for path in sorted((ROOT / package).rglob("*.py")):
         tree = ast.parse(path.read_text(), filename=str(path))
@@ -163,3 +162,67 @@ def test_only_tissue_profile_compares_profiles() -> None:
             continue
         for number, line in enumerate(path.read_text().splitlines(), start=1):
             assert not comparison.search(line), f"{path}:{number} compares profiles: {line}"
+
+
+def _module_graph() -> dict[str, set[str]]:
+    """Every module of tissue, envs and agents -> the modules of the three it imports (any
+    import statement: at module level, inside a function, under TYPE_CHECKING); a package's
+    ``__init__`` is left out as a target (it re-exports what its modules define)."""
+    files: dict[str, Path] = {}
+    for package in ("tissue", "envs", "agents"):
+        for path in (ROOT / package).rglob("*.py"):
+            parts = path.relative_to(ROOT).with_suffix("").parts
+            files[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    packages = {name for name, path in files.items() if path.name == "__init__.py"}
+    graph: dict[str, set[str]] = {}
+    for name, path in files.items():
+        if name in packages:
+            continue
+        targets: set[str] = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                targets |= {node.module} | {f"{node.module}.{a.name}" for a in node.names}
+            elif isinstance(node, ast.Import):
+                targets |= {alias.name for alias in node.names}
+        graph[name] = {t for t in targets if t in files and t not in packages and t != name}
+    return graph
+
+
+def _circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The import circles: strongly connected sets of two or more modules (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    circles: list[list[str]] = []
+
+    def visit(module: str) -> None:
+        index[module] = low[module] = len(index)
+        stack.append(module)
+        for target in graph.get(module, ()):
+            if target not in index:
+                visit(target)
+                low[module] = min(low[module], low[target])
+            elif target in stack:
+                low[module] = min(low[module], index[target])
+        if low[module] == index[module]:
+            members = []
+            while True:
+                member = stack.pop()
+                members.append(member)
+                if member == module:
+                    break
+            if len(members) > 1:
+                circles.append(sorted(members))
+
+    for module in graph:
+        if module not in index:
+            visit(module)
+    return circles
+
+
+def test_no_import_circles_even_deferred() -> None:
+    """No two modules import each other, directly or round a longer circle, and a deferred
+    or type-only import does not hide one."""
+    assert _circles(_module_graph()) == []
+    # The check sees a circle, here a deferred one.
+    assert _circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
