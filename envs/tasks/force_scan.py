@@ -155,7 +155,7 @@ class ForceScanEnv(ProbeEnv):
 
     ## Observation space
 
-    ``Dict`` of float32 boxes (flattenable):
+    ``Dict`` of float32 boxes (flattenable), and with ``image=True`` a uint8 image:
 
     | key | shape | meaning |
     | --- | --- | --- |
@@ -163,6 +163,7 @@ class ForceScanEnv(ProbeEnv):
     | ``wrench`` | (6,) | F/T force [N], torque [N m] about the face centre, probe frame |
     | ``joint_pos``, ``joint_vel`` | (n,) | the arm's n joints (6 by default) [rad], [rad/s] |
     | ``path`` | (9,) | the path's end [m], the skin's normal, progress, length [m], share |
+    | ``image`` | (128, 128, 1) | with ``image=True``: the B-mode image under the probe, uint8 |
 
     The phantom frame has its origin at the centre of the phantom's base; the quaternion is
     the one with w >= 0; the wrench is the sensor's, negated, with the probe's weight tared

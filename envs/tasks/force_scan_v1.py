@@ -102,7 +102,7 @@ class ForceScanV1Env(ForceScanEnv):
     ## Observation space
 
     ``Dict`` of float32 boxes (flattenable): v0's (``probe_pose``, ``wrench``,
-    ``joint_pos``, ``joint_vel``, ``path``) and
+    ``joint_pos``, ``joint_vel``, ``path``, with ``image=True`` ``image``) and
 
     | key | shape | meaning |
     | --- | --- | --- |

@@ -143,7 +143,7 @@ class LesionSearchEnv(ProbeEnv):
 
     ## Observation space
 
-    ``Dict`` of float32 boxes (flattenable):
+    ``Dict`` of float32 boxes (flattenable), and with ``image=True`` a uint8 image:
 
     | key | shape | meaning |
     | --- | --- | --- |
@@ -151,6 +151,7 @@ class LesionSearchEnv(ProbeEnv):
     | ``wrench`` | (6,) | F/T force [N], torque [N m] about the face centre, probe frame |
     | ``joint_pos``, ``joint_vel`` | (n,) | the arm's n joints (6 by default) [rad], [rad/s] |
     | ``lesion`` | (4,) | target lesion in the image: lateral, depth, out-of-plane [m], visible |
+    | ``image`` | (128, 128, 1) | with ``image=True``: the B-mode image under the probe, uint8 |
 
     The phantom frame has its origin at the centre of the phantom's base, on the table; the
     quaternion is the one with w >= 0; the wrench is the sensor's, negated, with the probe's

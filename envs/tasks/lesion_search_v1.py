@@ -97,7 +97,7 @@ class LesionSearchV1Env(LesionSearchEnv):
     ## Observation space
 
     ``Dict`` of float32 boxes (flattenable): v0's (``probe_pose``, ``wrench``,
-    ``joint_pos``, ``joint_vel``, ``lesion``) and
+    ``joint_pos``, ``joint_vel``, ``lesion``, with ``image=True`` ``image``) and
 
     | key | shape | meaning |
     | --- | --- | --- |
