@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from agents.train.run import ALGORITHMS, TrainError, TrainSettings, train
+from agents.train.workers import WorkerDiedError
 
 
 def add_train_parser(commands: Any) -> None:
@@ -113,7 +114,11 @@ def run_train(args: argparse.Namespace) -> int:
         warning = cores_warning(args.n_envs, os.cpu_count())
         if warning is not None:
             print(warning, file=sys.stderr)
-        finals = [train(s, command=args.command_line) for s in settings]
+        try:
+            finals = [train(s, command=args.command_line) for s in settings]
+        except WorkerDiedError as error:
+            print(f"probegym: error: {error}", file=sys.stderr)
+            return 1
     if len(runs) > 1:
         _summarise(settings, finals, out)
     return 0

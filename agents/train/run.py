@@ -44,6 +44,13 @@ from agents.train.artifacts import (
     training_folder,
 )
 from agents.train.hyperparameters import default_hyperparameters
+from agents.train.workers import (
+    PIPE_ERRORS,
+    WorkerDiedError,
+    dead_worker_report,
+    dead_workers,
+    stop_workers,
+)
 from tissue.errors import ConfigError
 
 #: Algorithms ``--algo`` takes.
@@ -327,13 +334,23 @@ def train(
         _continue_evaluation_log(callbacks.callbacks[1], log_file, resume[1])
     remaining = settings.steps - (0 if resume is None else resume[1])
     started = time.perf_counter()
-    model.learn(
-        total_timesteps=remaining,
-        callback=callbacks,
-        progress_bar=settings.progress and _progress_bar_available(),
-        reset_num_timesteps=resume is None,
-        tb_log_name=settings.algo,
-    )
+    try:
+        model.learn(
+            total_timesteps=remaining,
+            callback=callbacks,
+            progress_bar=settings.progress and _progress_bar_available(),
+            reset_num_timesteps=resume is None,
+            tb_log_name=settings.algo,
+        )
+    except PIPE_ERRORS as error:
+        dead = dead_workers(venv) or dead_workers(eval_env)
+        if not dead:
+            raise
+        stop_workers(venv, eval_env)
+        kept = latest_checkpoint(out)
+        raise WorkerDiedError(
+            dead_worker_report(dead, settings.seed, out, None if kept is None else kept[1])
+        ) from error
     model.save(final)
     if settings.normalize:
         venv.save(str(out / NORMALIZE_FILE))  # type: ignore[attr-defined]

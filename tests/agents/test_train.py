@@ -118,6 +118,93 @@ def test_a_hyperparameter_the_algorithm_does_not_take_is_refused_before_any_work
     assert not out.exists()
 
 
+def test_a_dead_worker_is_named_with_its_environment_and_episode(tmp_path: Path) -> None:
+    """A worker process killed under a SubprocVecEnv is found (its index and the signal's
+    exit code) and reported with the seed it was made with and the episode it was on."""
+    pytest.importorskip("stable_baselines3", reason=RL_EXTRA)
+    import os
+    import signal
+
+    import gymnasium as gym
+    from stable_baselines3.common.vec_env import SubprocVecEnv, VecNormalize
+
+    from agents.train.workers import dead_worker_report, dead_workers
+
+    venv = VecNormalize(
+        SubprocVecEnv([lambda: gym.make("CartPole-v1")] * 2, start_method="forkserver")
+    )
+    try:
+        assert dead_workers(venv) == []
+        process = venv.venv.processes[1]
+        os.kill(process.pid, signal.SIGKILL)
+        process.join(10)
+        assert dead_workers(venv) == [(1, -9)]
+    finally:
+        for process in venv.venv.processes:
+            process.kill()
+    monitor = tmp_path / "monitor"
+    monitor.mkdir()
+    (monitor / "1.monitor.csv").write_text('#{"t_start": 0}\nr,l,t\n1,2,3\n4,5,6\n')
+    report = dead_worker_report([(1, -9)], 7, tmp_path, 2048)
+    assert "environment 1 (made with seed 8) died on its episode 3, exit code -9" in report
+    assert "checkpoints up to 2,048 steps are kept" in report and "rerun the same" in report
+    assert "no checkpoint was written yet" in dead_worker_report([(0, 1)], 0, tmp_path, None)
+
+
+@pytest.mark.train
+def test_a_run_whose_worker_dies_says_which_and_keeps_its_checkpoints(tmp_path: Path) -> None:
+    """probegym train's own loop: a worker killed after the first checkpoint ends the run
+    with the error naming it, and the checkpoint is kept (from which a rerun resumes, as
+    test_train_saves_everything_loads_back_and_resumes shows)."""
+    pytest.importorskip("stable_baselines3", reason=RL_EXTRA)
+    import os
+    import signal
+
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    from agents.train.run import TrainSettings, train
+    from agents.train.workers import WorkerDiedError
+
+    class KillWorker(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.venv: object = None
+
+        def _on_step(self) -> bool:
+            if self.num_timesteps >= 1100 and self.venv is not None:
+                processes = self.venv.processes  # type: ignore[attr-defined]
+                os.kill(processes[1].pid, signal.SIGKILL)
+                processes[1].join(10)
+                self.venv = None
+            return True
+
+    class Hooks:
+        """train()'s benchmark hooks, used here to reach the worker processes."""
+
+        def __init__(self) -> None:
+            self.callback = KillWorker()
+            self.env_wrapper = None
+
+        def inner(self, venv: object) -> object:
+            self.callback.venv = venv
+            return venv
+
+        def outer(self, venv: object) -> object:
+            return venv
+
+        def mirror(self, venv: object) -> object:
+            return venv
+
+    out = tmp_path / "run"
+    settings = TrainSettings(
+        env_id=ENV_ID, out=out, env_kwargs={"mesh": 623}, steps=4096, n_envs=2,
+        eval_every=100_000, checkpoint_every=1024, progress=False,
+    )  # fmt: skip
+    with pytest.raises(WorkerDiedError, match=r"environment 1 \(made with seed 1\) died"):
+        train(settings, log=lambda _: None, timing=Hooks())
+    assert (out / "checkpoints" / "model_1024_steps.zip").is_file()
+
+
 def test_a_path_that_is_no_model_is_refused(tmp_path: Path) -> None:
     from agents.train import TrainedPolicyError, load_policy
 
