@@ -124,7 +124,8 @@ class StepState:
 
 @dataclass(frozen=True)
 class ActionConfig:
-    """How an action in [-1, 1]^6 moves the probe's target each step.
+    """How an action in [-1, 1]^6 moves the probe's target each step (``joint_delta``: one
+    number per joint moves its target).
 
     Attributes:
         max_translation_m: translation at |a| = 1 [m per step], along the probe's axes.
