@@ -10,14 +10,17 @@ One record per trained run (its final model) and per task and chosen policy, wit
 ``env_id``, ``algo`` (None for a hand-written policy), ``policy`` (``ppo``, ``sac``,
 ``scripted``, ``random``), ``seed`` (the training's; None for a hand-written policy),
 ``steps`` (environment steps trained), ``heldout_success`` (the share of ``--episodes``
-episodes reset with seeds ``--seed`` ... that succeeded; the training used seeds S + i
-and its evaluations S + 10,000 + i, so choose seeds far from both), ``heldout_episodes``,
-``heldout_interval`` (Wilson, 95 %), ``wall_s`` (the training's wall time: the latest
-episode end in its ``monitor/`` files, evaluations included), ``steps_per_s`` (``steps``
-over it), ``steps_to_80`` (the first training evaluation at 80 % success or more; None if
-none), ``defaults`` (true when the run added no keyword argument, pre-training or initial
-model) and ``command`` (what reproduces the record). Records already in the JSON for other
-(env, policy, seed) stay; the same ones are replaced.
+episodes reset with seeds ``--seed`` ... that succeeded; the training used seeds S + i and
+its evaluations S + 10,000 + i, so choose seeds far from both), ``heldout_episodes``,
+``heldout_interval`` (Wilson, 95 %), ``wall_s`` (the training's wall time up to the model's
+steps, evaluations included: the span of each TensorBoard event file in ``tb/``, one per
+process that trained it, summed over a run resumed any number of times; without them, the
+latest episode end in its ``monitor/`` files, which a resume starts afresh), ``steps_per_s``
+(``steps`` over it), ``steps_to_80`` (the first training evaluation, at or before the
+model's steps, at 80 % success or more; None if none), ``defaults`` (true when the run added
+no keyword argument, pre-training or initial model) and ``command`` (what reproduces the
+record). Records already in the JSON for other (env, policy, seed) stay; the same ones are
+replaced.
 """
 
 from __future__ import annotations
@@ -46,13 +49,13 @@ def run_record(path: Path, episodes: int, seed: int) -> dict[str, Any]:
     config = read_config(folder)
     records = _held_out(str(config["env_id"]), model, episodes, seed)
     steps = _checkpoint_steps(model) or _trained_steps(folder)
-    wall = _wall_s(folder)
+    wall = _tensorboard_wall_s(folder, steps) or _wall_s(folder)
     defaults = _defaults(config)
     return _record(config["env_id"], config["algo"], config["algo"], config["seed"], records) | {
         "steps": steps,
         "wall_s": wall,
         "steps_per_s": steps / wall if steps and wall else None,
-        "steps_to_80": _steps_to(folder, TARGET_SUCCESS),
+        "steps_to_80": _steps_to(folder, TARGET_SUCCESS, steps),
         "defaults": bool(defaults),
         "command": config.get("command"),
         "model": str(model),
@@ -130,6 +133,22 @@ def _trained_steps(folder: Path) -> int:
     return max(steps, default=0)
 
 
+def _tensorboard_wall_s(folder: Path, steps: int) -> float | None:
+    """The summed span [s] of the run's TensorBoard event files (one per process that
+    trained it), each up to its last event at or before ``steps``; None without any."""
+    try:
+        from tensorboard.backend.event_processing.event_file_loader import EventFileLoader
+    except ImportError:  # the rl extra's; the monitor files then give the time
+        return None
+    total, found = 0.0, False
+    for path in sorted((folder / "tb").rglob("events.out.tfevents.*")):
+        times = [e.wall_time for e in EventFileLoader(str(path)).Load() if e.step <= steps]
+        if len(times) > 1:
+            total += max(times) - min(times)
+            found = True
+    return total if found else None
+
+
 def _wall_s(folder: Path) -> float | None:
     """The latest episode end [s after the monitor's start] over the run's monitor files."""
     ends = []
@@ -140,7 +159,7 @@ def _wall_s(folder: Path) -> float | None:
     return max(ends) if ends else None
 
 
-def _steps_to(folder: Path, target: float) -> int | None:
+def _steps_to(folder: Path, target: float, up_to: int | None = None) -> int | None:
     log = folder / "eval" / "evaluations.npz"
     if not log.is_file():
         return None
@@ -148,6 +167,8 @@ def _steps_to(folder: Path, target: float) -> int | None:
     if "successes" not in data:
         return None
     for steps, successes in zip(data["timesteps"], data["successes"], strict=True):
+        if up_to is not None and steps > up_to:
+            break
         if float(np.mean(successes)) >= target:
             return int(steps)
     return None

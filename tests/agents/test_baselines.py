@@ -9,7 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.evaluation.baselines import _defaults, _steps_to, _wall_s, merge, policy_record
+from agents.evaluation.baselines import (
+    _defaults,
+    _steps_to,
+    _tensorboard_wall_s,
+    _wall_s,
+    merge,
+    policy_record,
+)
 
 
 def _config(**changes) -> dict:
@@ -45,6 +52,8 @@ def test_steps_to_80_is_the_first_evaluation_at_80_percent(tmp_path: Path) -> No
     np.savez(tmp_path / "eval" / "evaluations.npz", timesteps=[10, 20, 30, 40], successes=successes)
     assert _steps_to(tmp_path, 0.8) == 30
     assert _steps_to(tmp_path, 1.0) == 40
+    assert _steps_to(tmp_path, 0.8, up_to=29) is None  # a checkpoint's: none by then
+    assert _steps_to(tmp_path, 0.8, up_to=30) == 30
     np.savez(tmp_path / "eval" / "evaluations.npz", timesteps=[10], successes=successes[:1])
     assert _steps_to(tmp_path, 0.8) is None
 
@@ -55,6 +64,28 @@ def test_wall_time_is_the_latest_episode_end_over_the_monitors(tmp_path: Path) -
     (tmp_path / "monitor" / "0.monitor.csv").write_text(header + "1,10,5.5,0\n2,10,40.25,1\n")
     (tmp_path / "monitor" / "1.monitor.csv").write_text(header + "1,10,39.0,1\n")
     assert _wall_s(tmp_path) == 40.25
+
+
+def test_wall_time_sums_each_training_process_s_events_up_to_the_model(tmp_path: Path) -> None:
+    """A run resumed once: two event files (one per process), each timed from its own first
+    event to its last; the time between the processes is not counted, and a checkpoint's
+    time stops at its steps."""
+    pytest.importorskip("tensorboard", reason="TensorBoard is in the rl extra")
+    import time
+
+    from torch.utils.tensorboard import SummaryWriter
+
+    for name, points in (("first", [(0, 0.0), (50, 30.0), (100, 60.0)]),
+                         ("resumed", [(100, 0.0), (150, 25.0), (200, 40.0)])):  # fmt: skip
+        start = time.time()  # the writer stamps its own first event with the clock
+        writer = SummaryWriter(str(tmp_path / "tb" / "ppo_1"), filename_suffix=name)
+        for step, offset in points:
+            writer.add_scalar("rollout/ep_rew_mean", 1.0, step, walltime=start + offset)
+        writer.close()
+    assert _tensorboard_wall_s(tmp_path, 200) == pytest.approx(100.0, abs=1.0)
+    assert _tensorboard_wall_s(tmp_path, 150) == pytest.approx(85.0, abs=1.0)
+    assert _tensorboard_wall_s(tmp_path, 100) == pytest.approx(60.0, abs=1.0)
+    assert _tensorboard_wall_s(tmp_path / "none", 200) is None
 
 
 def test_new_records_replace_the_same_runs_only(tmp_path: Path) -> None:
