@@ -21,7 +21,7 @@ from typing import Any
 
 from tissue.errors import ConfigError
 
-DEFAULT_ENV = "probegym/BreastCompress-v0"
+DEFAULT_ENV = "probegym/BreastCompress-v1"
 #: The mesh levels the viewer offers beside the one given (finer ones step too slowly to
 #: drive by hand on a laptop; any level or mesh file can be given with --mesh).
 VIEW_LEVELS = (623, 1363, 2539, 4126)

@@ -56,7 +56,7 @@ from agents.bench.env import scripted_press
 from agents.bench.report import BenchRecord, MarkdownTable, write_records
 from tissue.errors import ConfigError
 
-DEFAULT_IDS = ("probegym/BreastCompress-v0",)
+DEFAULT_IDS = ("probegym/BreastCompress-v1",)
 DEFAULT_METHODS = ("lm",)
 DEFAULT_LEVEL = 1363
 #: Exploring steps drawn per record (episodes reset as they end).
