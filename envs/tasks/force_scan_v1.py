@@ -106,7 +106,7 @@ class ForceScanV1Env(ForceScanEnv):
 
     | key | shape | meaning |
     | --- | --- | --- |
-    | ``last_action`` | (6,) | the last step's action (zeros after a reset; as the action's) |
+    | ``last_action`` | the action's | the last step's action (zeros after a reset) |
     | ``force_history`` | (4,) | the normal contact force [N] now and at the last 3 steps |
 
     ## Rewards

@@ -101,7 +101,7 @@ class LesionSearchV1Env(LesionSearchEnv):
 
     | key | shape | meaning |
     | --- | --- | --- |
-    | ``last_action`` | (6,) | the last step's action (zeros after a reset; as the action's) |
+    | ``last_action`` | the action's | the last step's action (zeros after a reset) |
     | ``scan_offset`` | (3,) | the probe's position from its start, in the start's probe frame [m] |
     | ``scan_extent`` | (2,) | the least and greatest ``scan_offset[0]`` reached this episode [m] |
 
