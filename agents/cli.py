@@ -15,15 +15,14 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from agents.env_listing import add_envs_parser, run_envs
-from agents.evaluation import add_evaluate_parser, run_evaluate
-from agents.train.command import add_train_parser, seed_list
+from agents.learning.evaluation import add_evaluate_parser, run_evaluate
+from agents.learning.train.command import add_train_parser, seed_list
 from agents.view import add_view_parser, run_view
-from tissue.errors import ConfigError, TissueInputError
-from tissue.profile import Profile
+from tissue import ConfigError, Profile, TissueInputError
 
 
 def _level(value: str) -> int:
-    from tissue.mesh.phantom import parse_level
+    from tissue.lab import parse_level
 
     try:
         return parse_level(value)
@@ -58,7 +57,7 @@ def _names(text: str | None, parse: Callable[[str], object] | None = None) -> li
 
 def _train_algos(parser: argparse.ArgumentParser, text: str) -> list[str]:
     """``bench train --algo``'s algorithms (``none``: no train phase)."""
-    from agents.train.run import ALGORITHMS
+    from agents.learning.train.run import ALGORITHMS
 
     if text.strip() == "none":
         return []
@@ -83,7 +82,7 @@ def _methods_and_profiles(
 ) -> tuple[list[str] | None, list[str]]:
     """A benchmark's ``--contact`` (None: all) and ``--profile`` (one or more) options,
     checked."""
-    from tissue.contact import contact_method
+    from tissue.lab import contact_method
 
     chosen = _names(profiles, Profile.parse)
     if not chosen:
@@ -122,9 +121,8 @@ def _check_skins(
     parser: argparse.ArgumentParser, skins: list[float | None] | None, levels: list[int]
 ) -> None:
     """Refuse, before any work, a skin resolution outside a level's range."""
-    from tissue.errors import ConfigError
-    from tissue.mesh.phantom import breast_phantom
-    from tissue.mesh.skin import check_collision_edge
+    from tissue import ConfigError
+    from tissue.lab import breast_phantom, check_collision_edge
 
     for level in levels:
         mesh = breast_phantom(level)
@@ -239,7 +237,7 @@ def _build_parser() -> argparse.ArgumentParser:
     study = commands.add_parser(
         "study", help="the compression study of Tagliabue et al. 2020: tables, figures, report"
     )
-    from agents.study.command import add_study_arguments
+    from agents.lab.study.command import add_study_arguments
 
     add_study_arguments(study)
 
@@ -389,7 +387,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         configure_threads()
         if args.command in ("demo", "compress", "hard-cases", "bench"):
-            from agents.first_use import announce_compilation
+            from agents.lab.first_use import announce_compilation
 
             announce_compilation()
         return _run(parser, args)
@@ -443,12 +441,12 @@ def _kept(args: argparse.Namespace) -> str:
 def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """Run the parsed command; returns its exit status."""
     if args.command == "demo":
-        from agents.tissue_demo import run_demo
+        from agents.lab.tissue_demo import run_demo
 
         return run_demo(level=args.level, depth_m=args.depth_mm * 1e-3, mode=args.mode)
     if args.command == "compress" and args.case is not None:
-        from agents.hard_cases import run_catalogue
-        from tissue.mesh.phantom import parse_level
+        from agents.lab.hard_cases import run_catalogue
+        from tissue.lab import parse_level
 
         _reject_options_a_case_sets(parser, args)
 
@@ -458,15 +456,15 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         )
         return 0 if all(record["stable"] for record in records) else 1
     if args.command == "compress":
-        from agents.compress_command import run_compress_command
+        from agents.lab.compress_command import run_compress_command
 
         return run_compress_command(args)
     if args.command == "study":
-        from agents.study.command import run_study_command
+        from agents.lab.study.command import run_study_command
 
         return run_study_command(args)
     if args.command == "hard-cases":
-        from agents.hard_cases import SMALL_CASES, run_catalogue
+        from agents.lab.hard_cases import SMALL_CASES, run_catalogue
 
         configs = [Profile.parse(c).value for c in args.config.split(",")]
         cases = args.cases.split(",") if args.cases else list(SMALL_CASES)
@@ -475,15 +473,15 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     if args.command == "mesh":
         return _mesh(args.level, args.out)
     if args.command == "bench" and args.bench == "tissue":
-        from agents.bench.tissue import run_tissue_benchmark
+        from agents.lab.bench.tissue import run_tissue_benchmark
 
         if args.repeats < 1:
             parser.error(f"--repeats must be >= 1; got {args.repeats}")
         run_tissue_benchmark(args.levels, args.repeats, args.json, command=args.command_line)
         return 0
     if args.command == "bench" and args.bench == "contact":
-        from agents.bench.contact import DEFAULT_LEVELS as CONTACT_LEVELS
-        from agents.bench.contact import run_contact_benchmark
+        from agents.lab.bench.contact import DEFAULT_LEVELS as CONTACT_LEVELS
+        from agents.lab.bench.contact import run_contact_benchmark
 
         methods, modes = _methods_and_profiles(parser, args.methods, args.modes)
         _check_skins(parser, args.skin, list(args.levels or CONTACT_LEVELS))
@@ -492,8 +490,8 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         )
         return 0
     if args.command == "bench" and args.bench == "env":
-        from agents.bench.env import DEFAULT_LEVELS as ENV_LEVELS
-        from agents.bench.env import run_env_benchmark
+        from agents.lab.bench.env import DEFAULT_LEVELS as ENV_LEVELS
+        from agents.lab.bench.env import run_env_benchmark
 
         methods, profiles = _methods_and_profiles(parser, args.methods, args.profiles)
         _check_skins(parser, args.skin, list(args.levels or ENV_LEVELS))
@@ -508,7 +506,7 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         )
         return 0
     if args.command == "bench" and args.bench == "train":
-        from agents.bench.train import run_train_benchmark
+        from agents.lab.bench.train import run_train_benchmark
 
         methods, _ = _methods_and_profiles(parser, args.methods, "robust")
         run_train_benchmark(
@@ -526,7 +524,7 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         )
         return 0
     if args.command == "bench" and args.bench == "effects":
-        from agents.bench.effects import run_effects_benchmark
+        from agents.lab.bench.effects import run_effects_benchmark
 
         methods, profiles = _methods_and_profiles(parser, args.methods, args.profiles)
         run_effects_benchmark(methods, profiles, args.mesh, args.json, command=args.command_line)
@@ -538,11 +536,11 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     if args.command == "view":
         return run_view(args)
     if args.command == "train":
-        from agents.train.command import run_train
+        from agents.learning.train.command import run_train
 
         return run_train(args)
     if args.command == "bench" and args.bench == "sweep":
-        from agents.bench.sweep import run_sweep_benchmark
+        from agents.lab.bench.sweep import run_sweep_benchmark
 
         methods, profiles = _methods_and_profiles(parser, args.methods, args.profile)
         if len(profiles) != 1:
@@ -552,7 +550,7 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         )
         return 0
     if args.command == "bench" and args.bench == "peer":
-        from agents.bench.peer import run_peer_benchmark
+        from agents.lab.bench.peer import run_peer_benchmark
 
         if not args.sim_seconds > 0:
             parser.error(f"--sim-seconds must be > 0; got {args.sim_seconds}")
@@ -563,8 +561,7 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
 
 def _mesh(level: int, out: Path) -> int:
-    from tissue.mesh.io import write_mesh
-    from tissue.mesh.phantom import breast_phantom, describe_mesh
+    from tissue.lab import breast_phantom, describe_mesh, write_mesh
 
     mesh = breast_phantom(level)
     path = write_mesh(mesh, out)

@@ -19,7 +19,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from tissue.errors import ConfigError
+from tissue import ConfigError
 
 #: The folder default outputs go under, in the working directory.
 OUTPUT_ROOT = Path("probegym-out")

@@ -19,7 +19,7 @@ import argparse
 import sys
 from typing import Any
 
-from tissue.errors import ConfigError
+from tissue import ConfigError
 
 DEFAULT_ENV = "probegym/BreastCompress-v1"
 #: The mesh levels the viewer offers beside the one given (finer ones step too slowly to
@@ -112,10 +112,10 @@ def resolve_view_policy(
         )
     if policy is None:
         return {}, "", {}
-    from agents.evaluation.run import SCRIPTED, resolve_policy
+    from agents.learning.evaluation.run import SCRIPTED, resolve_policy
 
     if policy == SCRIPTED:
-        from agents.policies import SCRIPTED_POLICIES
+        from agents.learning.policies import SCRIPTED_POLICIES
 
         return dict(SCRIPTED_POLICIES), SCRIPTED, {}
     label, factory, kwargs = resolve_policy(env_id, policy, {})

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.evaluation.baselines import (
+from agents.learning.evaluation.baselines import (
     _defaults,
     _steps_to,
     _tensorboard_wall_s,
@@ -110,7 +110,7 @@ def test_a_hand_written_policy_is_a_record_with_its_command() -> None:
 
 
 def test_the_table_has_a_row_per_record_in_order() -> None:
-    from agents.evaluation.baselines import table
+    from agents.learning.evaluation.baselines import table
 
     base = {"defaults": True, "steps": 0, "heldout_episodes": 50, "wall_s": None}
     records = [
@@ -126,7 +126,7 @@ def test_the_table_has_a_row_per_record_in_order() -> None:
 
 
 def test_a_checkpoints_steps_come_from_its_name() -> None:
-    from agents.evaluation.baselines import _checkpoint_steps
+    from agents.learning.evaluation.baselines import _checkpoint_steps
 
     assert _checkpoint_steps(Path("runs/x/checkpoints/model_160000_steps.zip")) == 160_000
     assert _checkpoint_steps(Path("runs/x/model.zip")) is None

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.bench.tissue import print_robust_targets, robust_step_target
 from agents.cli import main
+from agents.lab.bench.tissue import print_robust_targets, robust_step_target
 from tissue.contact.penalty import PenaltyParams
 
 
@@ -163,7 +163,7 @@ def test_bench_env_reports_steps_per_second_and_where_the_time_goes(tmp_path: Pa
 def test_contact_targets_reach_its_markdown() -> None:
     """Every target a contact record carries becomes a row of the published table, with its
     verdict; records without one add none."""
-    from agents.bench.contact import _annotate_targets, markdown_tables, target_rows
+    from agents.lab.bench.contact import _annotate_targets, markdown_tables, target_rows
 
     def record(method: str, mode: str, step_ms: float) -> dict:
         return {"method": method, "mode": mode, "level": 4126, "tets": 4141,
@@ -228,8 +228,8 @@ def test_bench_train_times_the_press_and_the_exploring_step(tmp_path: Path) -> N
 def test_bench_train_replay_times_a_policys_own_steps_in_contact() -> None:
     """The replay phase steps the policy on what it observes (here the task's scripted
     policy standing in for a trained one), across episodes, and times the steps in contact."""
-    from agents.bench.train import replay_record
-    from agents.policies.compression import CompressionPolicy
+    from agents.lab.bench.train import replay_record
+    from agents.learning.policies.compression import CompressionPolicy
 
     seen: list[float] = []
     scripted = CompressionPolicy()

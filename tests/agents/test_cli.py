@@ -86,7 +86,7 @@ def test_defaults_land_under_probegym_out(tmp_path, monkeypatch) -> None:
     ],
 )
 def test_compress_refuses_what_it_used_to_accept(monkeypatch, capsys, extra, message) -> None:
-    _fail_if_called(monkeypatch, "agents.compress_command.run_compression")
+    _fail_if_called(monkeypatch, "agents.lab.compress_command.run_compression")
     assert main(["compress", "--mesh", "623", "--json", os.devnull, *extra]) == 2
     assert message in capsys.readouterr().err
 
@@ -330,7 +330,7 @@ def test_train_env_kwargs_must_be_a_json_object(capsys, value, message) -> None:
 
 
 def test_train_env_kwargs_may_not_set_what_has_an_option(monkeypatch, capsys) -> None:
-    _fail_if_called(monkeypatch, "agents.train.command.train")
+    _fail_if_called(monkeypatch, "agents.learning.train.command.train")
     argv = ["train", "probegym/ForceScan-v0", "--env-kwargs", '{"contact": "pbd"}']
     assert main(argv) == 2
     assert "use --contact instead" in capsys.readouterr().err
@@ -338,7 +338,7 @@ def test_train_env_kwargs_may_not_set_what_has_an_option(monkeypatch, capsys) ->
 
 def test_train_env_kwargs_reach_the_run_settings() -> None:
     from agents.cli import _build_parser
-    from agents.train.command import _settings
+    from agents.learning.train.command import _settings
 
     kwargs = '{"start_offset_range_m": [0, 0.01]}'
     args = _build_parser().parse_args(["train", "probegym/LesionSearch-v0", "--env-kwargs", kwargs])

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import envs
-from agents.evaluation import (
+from agents.learning.evaluation import (
     CSV_COLUMNS,
     TIMING_PREFIX,
     add_evaluate_parser,
@@ -25,9 +25,9 @@ from agents.evaluation import (
     run_evaluate,
     without_timings,
 )
-from agents.evaluation.report import wilson_interval
-from agents.evaluation.run import resolve_policy
-from agents.policies import SCRIPTED_POLICIES
+from agents.learning.evaluation.report import wilson_interval
+from agents.learning.evaluation.run import resolve_policy
+from agents.learning.policies import SCRIPTED_POLICIES
 from tissue.errors import ConfigError
 
 MESH = 623
@@ -240,12 +240,12 @@ class _FakeTrained:
 
 
 def test_a_trained_policy_brings_its_env_and_refuses_another(monkeypatch, tmp_path) -> None:
-    import agents.train
+    import agents.learning.train
 
     trained = _FakeTrained(
         {"env_id": "probegym/LesionSearch-v0", "env_kwargs": {"mesh": 1363, "contact": "pbd"}}
     )
-    monkeypatch.setattr(agents.train, "load_policy", lambda path: trained)
+    monkeypatch.setattr(agents.learning.train, "load_policy", lambda path: trained)
     label, make, kwargs = resolve_policy(
         "probegym/LesionSearch-v0", tmp_path, {"contact": "lm", "domain_randomization": True}
     )
@@ -257,13 +257,13 @@ def test_a_trained_policy_brings_its_env_and_refuses_another(monkeypatch, tmp_pa
 
 
 def test_a_model_of_another_version_is_refused_naming_both_spaces(monkeypatch, tmp_path) -> None:
-    import agents.train
+    import agents.learning.train
 
     v0 = gym.make("probegym/LesionSearch-v0")
     trained = _FakeTrained({"env_id": "probegym/LesionSearch-v0", "env_kwargs": {}})
     trained.model = type("Model", (), {"observation_space": v0.observation_space})()  # type: ignore[attr-defined]
     v0.close()
-    monkeypatch.setattr(agents.train, "load_policy", lambda path: trained)
+    monkeypatch.setattr(agents.learning.train, "load_policy", lambda path: trained)
     with pytest.raises(ConfigError) as refused:
         evaluate("probegym/LesionSearch-v1", tmp_path, 1, 0, {}, tmp_path / "o")
     message = str(refused.value)
@@ -274,7 +274,7 @@ def test_a_model_of_another_version_is_refused_naming_both_spaces(monkeypatch, t
 
 
 def test_each_task_has_its_centring_figure() -> None:
-    from agents.evaluation.run import _task_figures
+    from agents.learning.evaluation.run import _task_figures
 
     search = _task_figures({"lesion_lateral_m": -0.002})
     assert search["centring_error_m"] == pytest.approx(0.002)
@@ -286,7 +286,7 @@ def test_each_task_has_its_centring_figure() -> None:
 
 
 def test_the_random_baseline_is_seeded_and_acts_at_random(tmp_path: Path) -> None:
-    from agents.evaluation import evaluate
+    from agents.learning.evaluation import evaluate
 
     first = evaluate("probegym/BreastCompress-v0", "random", 1, 5, {"mesh": 623}, tmp_path / "a")
     again = evaluate("probegym/BreastCompress-v0", "random", 1, 5, {"mesh": 623}, tmp_path / "b")
@@ -296,8 +296,8 @@ def test_the_random_baseline_is_seeded_and_acts_at_random(tmp_path: Path) -> Non
 
 @pytest.mark.parametrize(("successes", "trials"), [(0, 50), (50, 50), (0, 7), (3, 7), (1, 1)])
 def test_the_interval_contains_the_rate_and_plots(successes: int, trials: int, tmp_path) -> None:
-    from agents.evaluation.plots import success_plot
-    from agents.evaluation.report import wilson_interval
+    from agents.learning.evaluation.plots import success_plot
+    from agents.learning.evaluation.report import wilson_interval
 
     low, high = wilson_interval(successes, trials)
     rate = successes / trials

@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agents.compress import run_compression
-from agents.hard_cases import HARD_CASES, SMALL_CASES, case_path, hard_case, run_hard_case
+from agents.lab.compress import run_compression
+from agents.lab.hard_cases import HARD_CASES, SMALL_CASES, case_path, hard_case, run_hard_case
 from tissue.contact import make_contact_model
 from tissue.errors import ConfigError
 from tissue.mesh.phantom import breast_phantom
@@ -163,7 +163,7 @@ def test_the_energy_check_fires_when_the_tissue_holds_more_than_the_probe_gave()
     energy stored)."""
     from dataclasses import replace
 
-    from agents.hard_cases import _EnergyCheck
+    from agents.lab.hard_cases import _EnergyCheck
     from tissue.contact.placement import first_contact_pose
 
     mesh = breast_phantom(623)

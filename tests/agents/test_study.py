@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.study.runner import RESULTS_FILE, read_results, run_study
-from agents.study.spec import Cell, StudySpec
-from agents.study.tables import complete_front, pareto_front, stability_table, valid_errors
+from agents.lab.study.runner import RESULTS_FILE, read_results, run_study
+from agents.lab.study.spec import Cell, StudySpec
+from agents.lab.study.tables import complete_front, pareto_front, stability_table, valid_errors
 from tissue.errors import ConfigError
 from tissue.profile import Profile
 
@@ -138,9 +138,9 @@ def test_a_killed_reference_resumes_where_it_saved_its_progress(
     on towards the third, or three steps into the hold at the second) resumes from there on
     the next run, taking only the remaining steps, and ends where an uninterrupted one does,
     to the Newton tolerance. Once complete, its progress file is gone."""
-    import agents.study.reference as reference
-    from agents.study.cell import scene_for
-    from agents.study.runner import _log_reference
+    import agents.lab.study.reference as reference
+    from agents.lab.study.cell import scene_for
+    from agents.lab.study.runner import _log_reference
     from tissue.contact.lagrange import LagrangeContact
 
     spec = StudySpec(
@@ -286,7 +286,7 @@ def test_bad_arguments_fail_before_any_work(
     """Refused before any mesh is made (the depths' check needs the coarsest, and only it)
     and before any cell runs."""
     from agents.cli import main
-    from agents.study import scenes
+    from agents.lab.study import scenes
 
     meshed: list[int] = []
     real_mesh = scenes.StudyScene.mesh
@@ -299,7 +299,7 @@ def test_bad_arguments_fail_before_any_work(
         raise AssertionError("a cell ran although the arguments were bad")
 
     monkeypatch.setattr(scenes.StudyScene, "mesh", counted)
-    monkeypatch.setattr("agents.study.runner.run_cell", no_cells)
+    monkeypatch.setattr("agents.lab.study.runner.run_cell", no_cells)
     out = tmp_path / "never"
     code = main(["study", "--out", str(out), "--no-progress", *arguments])
     assert code == 2
@@ -334,7 +334,7 @@ def test_default_lesions_leave_tissue_under_the_deepest_pose() -> None:
     """Every default lesion's 30 mm pose keeps the probe clear of the fixed base (a
     layout whose flank lesions drove it 1-4 mm into the base made those cells fail for
     every method), with margin: at least 12 mm of tissue under it."""
-    from agents.study.cell import scene_for
+    from agents.lab.study.cell import scene_for
     from tissue.probe import parse_probe_spec
 
     scene = scene_for(StudySpec())
@@ -424,13 +424,13 @@ def test_cells_cover_every_method_and_configuration_in_level_order() -> None:
 
 def test_reference_kind_is_the_specs_and_keys_what_it_depends_on(paper_scene_dir: Path) -> None:
     """Every scene is scored against a dynamic reference unless the spec asks for a
-    quasi-static one (see agents/study/reference.py); the dynamic reference replays the
+    quasi-static one (see agents/lab/study/reference.py); the dynamic reference replays the
     cells' hold, so its cache key changes with ``settle_steps`` while the quasi-static one's
     does not, and the two kinds never share a cache entry."""
     from dataclasses import replace
 
-    from agents.study.cell import scene_for
-    from agents.study.reference import DYNAMIC, QUASI_STATIC, reference_key, reference_kind
+    from agents.lab.study.cell import scene_for
+    from agents.lab.study.reference import DYNAMIC, QUASI_STATIC, reference_key, reference_kind
 
     synthetic = StudySpec(levels=(623,), lesions=(1,), reference_level=623)
     paper = StudySpec(
@@ -509,7 +509,7 @@ def test_local_ray_run_matches_local_run(tmp_path: Path) -> None:
 _POOL_SCRIPT = """
 import multiprocessing, os, time
 from concurrent.futures import ProcessPoolExecutor
-from agents.study.worker import init_worker
+from agents.lab.study.worker import init_worker
 pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
                            initializer=init_worker, initargs=(1, os.getpid()))
 print(pool.submit(os.getpid).result(), flush=True)
@@ -551,7 +551,7 @@ def test_a_killed_study_takes_its_workers_with_it() -> None:
 def test_robust_pbd_cell_with_a_flattening_sliver_completes() -> None:
     """The study cell where the robust PBD's worst-shaped tet at 26,220 tets flattened 1-2 %
     a step to inverted (83 % before the volume floor) now completes (about 1-2 minutes)."""
-    from agents.study.cell import run_cell
+    from agents.lab.study.cell import run_cell
 
     spec = StudySpec(levels=(26220,), lesions=(8,), reference_level=26220)
     record = run_cell(spec, Cell(Profile.ROBUST, "pbd", 26220, 8))
@@ -568,8 +568,8 @@ def test_robust_lm_settles_onto_its_own_levels_reference() -> None:
     presses the two kinds of reference agree. With the old protocol they did not: the
     reference's 2 mm increments jumped to another equilibrium at 20 and 25 mm (0.51 and 0.54
     mm away) and a 50-step hold left the 30 mm point 2.16 mm short of settling."""
-    from agents.study.cell import run_cell, scene_for
-    from agents.study.reference import compute_reference
+    from agents.lab.study.cell import run_cell, scene_for
+    from agents.lab.study.reference import compute_reference
 
     spec = StudySpec(
         levels=(4126,), lesions=(1,), reference_level=4126, reference_kind="quasi-static"
@@ -589,7 +589,7 @@ def test_a_task_that_raises_is_reported_and_the_rest_still_run(
     """A cell whose code raises (a bug, not an instability) is named in the outcome and not
     written; every other cell is, and a rerun retries the failed one. Before, the exception
     ended the whole study (with a process pool: every cell in flight lost)."""
-    import agents.study.runner as runner
+    import agents.lab.study.runner as runner
 
     run_cell = runner.run_cell
     broken = "robust/penalty/623/1"

@@ -9,25 +9,25 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.study import robot as robot_module
-from agents.study import robot_runner
-from agents.study.cell import run_cell
-from agents.study.robot import (
+from agents.lab.study import robot as robot_module
+from agents.lab.study import robot_runner
+from agents.lab.study.cell import run_cell
+from agents.lab.study.robot import (
     TWIN_ENV_TISSUE,
     TWIN_FROM_RESULTS,
     TWIN_RUN,
     check_robot_spec,
     run_robot_cell,
 )
-from agents.study.robot_runner import (
+from agents.lab.study.robot_runner import (
     compare_with_kinematic,
     kinematic_records,
     kinematic_twin,
     robot_cell_with_twin,
     run_robot_study,
 )
-from agents.study.runner import RESULTS_FILE, SPEC_FILE, read_results
-from agents.study.spec import Cell, StudySpec
+from agents.lab.study.runner import RESULTS_FILE, SPEC_FILE, read_results
+from agents.lab.study.spec import Cell, StudySpec
 from tissue import TissueSpec
 from tissue.contact.stability import StabilityLimits
 from tissue.errors import ConfigError

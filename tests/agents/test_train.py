@@ -51,7 +51,7 @@ def test_bad_numbers_are_refused_before_any_work(option, capsys) -> None:
 
 
 def test_more_envs_than_cores_is_warned_with_both_numbers() -> None:
-    from agents.train.command import cores_warning
+    from agents.learning.train.command import cores_warning
 
     assert cores_warning(2, 2) is None and cores_warning(8, None) is None
     warning = cores_warning(5, 2)
@@ -69,8 +69,8 @@ def test_hyperparameters_come_from_one_table_per_algorithm_and_task() -> None:
     """Each algorithm's defaults, a task's own entry over them (policy_kwargs merged key by
     key), and a run's own values over both; every registered task resolves."""
     import envs
-    from agents.train.hyperparameters import HYPERPARAMETERS, default_hyperparameters
-    from agents.train.run import TrainSettings
+    from agents.learning.train.hyperparameters import HYPERPARAMETERS, default_hyperparameters
+    from agents.learning.train.run import TrainSettings
 
     table = {
         "ppo": {
@@ -128,7 +128,7 @@ def test_a_dead_worker_is_named_with_its_environment_and_episode(tmp_path: Path)
     import gymnasium as gym
     from stable_baselines3.common.vec_env import SubprocVecEnv, VecNormalize
 
-    from agents.train.workers import dead_worker_report, dead_workers
+    from agents.learning.train.workers import dead_worker_report, dead_workers
 
     venv = VecNormalize(
         SubprocVecEnv([lambda: gym.make("CartPole-v1")] * 2, start_method="forkserver")
@@ -162,8 +162,8 @@ def test_a_run_whose_worker_dies_says_which_and_keeps_its_checkpoints(tmp_path: 
 
     from stable_baselines3.common.callbacks import BaseCallback
 
-    from agents.train.run import TrainSettings, train
-    from agents.train.workers import WorkerDiedError
+    from agents.learning.train.run import TrainSettings, train
+    from agents.learning.train.workers import WorkerDiedError
 
     class KillWorker(BaseCallback):
         def __init__(self) -> None:
@@ -206,7 +206,7 @@ def test_a_run_whose_worker_dies_says_which_and_keeps_its_checkpoints(tmp_path: 
 
 
 def test_a_path_that_is_no_model_is_refused(tmp_path: Path) -> None:
-    from agents.train import TrainedPolicyError, load_policy
+    from agents.learning.train import TrainedPolicyError, load_policy
 
     with pytest.raises(TrainedPolicyError, match="holds no model.zip and no checkpoint"):
         load_policy(tmp_path)
@@ -221,8 +221,8 @@ def test_cloning_fits_the_scripted_policy_s_actions() -> None:
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-    from agents.train.hyperparameters import default_hyperparameters
-    from agents.train.imitation import clone_into, scripted_demonstrations
+    from agents.learning.train.hyperparameters import default_hyperparameters
+    from agents.learning.train.imitation import clone_into, scripted_demonstrations
 
     torch.set_num_threads(1)
     kwargs = {"contact": "lm", "mesh": 623}
@@ -256,7 +256,7 @@ def test_train_saves_everything_loads_back_and_resumes(tmp_path: Path) -> None:
     import gymnasium as gym
 
     import envs  # noqa: F401 - registers the ids
-    from agents.train import load_policy
+    from agents.learning.train import load_policy
 
     out = tmp_path / "run"
     assert _train(out, "--steps", "2048") == 0

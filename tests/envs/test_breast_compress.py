@@ -10,7 +10,7 @@ import pytest
 
 import envs  # noqa: F401 - registers the environments
 import tissue
-from agents.policies import CompressionPolicy
+from agents.learning.policies import CompressionPolicy
 from envs.effects import EFFECTS
 from envs.errors import EnvConfigError
 from envs.tasks.breast_compress import BreastCompressEnv

@@ -61,7 +61,7 @@ def test_a_bad_strain_is_refused_naming_it(bad) -> None:
 def test_the_scripted_policy_succeeds_where_v0_asked_too_much() -> None:
     """A start where v0's compression exceeds 28 % of the depth: v1's scripted press
     succeeds, holding under the safety force."""
-    from agents.policies import SCRIPTED_POLICIES
+    from agents.learning.policies import SCRIPTED_POLICIES
 
     seed = next(
         s for s in range(50)

@@ -8,7 +8,7 @@ import pytest
 
 import envs  # noqa: F401 - registers the environments
 import tissue
-from agents.policies import ForceScanPolicy
+from agents.learning.policies import ForceScanPolicy
 from envs.effects import EFFECTS
 from envs.errors import EnvConfigError
 from envs.probe_env import PHANTOM_TARGET_LESIONS

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import envs  # noqa: F401 - registers the environments
-from agents.policies import SCRIPTED_POLICIES
+from agents.learning.policies import SCRIPTED_POLICIES
 from envs.errors import EnvConfigError
 from envs.tasks.force_scan import ForceScanConfig
 from envs.tasks.force_scan_v1 import ForceScanV1Config

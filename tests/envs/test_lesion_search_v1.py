@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import envs  # noqa: F401 - registers the environments
-from agents.policies import SCRIPTED_POLICIES
+from agents.learning.policies import SCRIPTED_POLICIES
 from envs.errors import EnvConfigError
 from envs.observations import LesionInImage
 from envs.tasks.lesion_search import LesionSearchConfig

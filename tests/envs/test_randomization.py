@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import envs
-from agents.policies import LesionSearchPolicy
+from agents.learning.policies import LesionSearchPolicy
 from envs.errors import EnvConfigError
 from envs.randomization import DomainRandomization
 

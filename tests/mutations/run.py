@@ -53,7 +53,7 @@ MUTATIONS = (
     ),
     Mutation(
         "the stability metric counts the failed step as completed",
-        "agents/compress.py",
+        "agents/lab/compress.py",
         "            if instability is not None:\n                break\n"
         "            motion_done += 1",
         "            motion_done += 1\n"
@@ -62,14 +62,14 @@ MUTATIONS = (
     ),
     Mutation(
         "the stability metric's motion counter not decremented for a failed hold",
-        "agents/compress.py",
+        "agents/lab/compress.py",
         "            motion_done -= 1  # the depth was reached but never held",
         "            pass",
         ("tests/tissue/test_stability.py",),
     ),
     Mutation(
         "the hard cases' energy check never fires",
-        "agents/hard_cases.py",
+        "agents/lab/hard_cases.py",
         "            self.ok = False",
         "            pass",
         (
@@ -78,7 +78,7 @@ MUTATIONS = (
     ),
     Mutation(
         "compress --depths may decrease",
-        "agents/compress.py",
+        "agents/lab/compress.py",
         '        raise ConfigError(f"--depths must increase; got {depths_m}")',
         "        pass",
         ("tests/agents/test_cli.py", "-k", "refuses"),
@@ -120,7 +120,7 @@ MUTATIONS = (
     ),
     Mutation(
         "the study scores each profile on its own depths",
-        "agents/study/tables.py",
+        "agents/lab/study/tables.py",
         '            lesion_case: tuple[int, ...] = (record["level"], record["lesion"])',
         '            lesion_case = (record["level"], record["lesion"], record["config"])',
         ("tests/agents/test_study.py", "-k", "same_depths"),

@@ -61,6 +61,71 @@ def test_imports_go_one_way_and_envs_use_only_the_front_door() -> None:
             assert set(names) <= public, (path, sorted(set(names) - public))
 
 
+def test_agents_reach_the_tissue_through_its_front_door_and_the_lab_surface() -> None:
+    """agents/ imports ``tissue`` and ``tissue.lab`` only, and only names in their
+    ``__all__``: the lab's needs beyond the front door are one documented surface."""
+    import tissue
+    import tissue.lab
+
+    surfaces = {"tissue": set(tissue.__all__), "tissue.lab": set(tissue.lab.__all__)}
+    for path, module, names in _imports("agents"):
+        if module.split(".")[0] != "tissue":
+            continue
+        assert module in surfaces, f"{path} imports {module}: use tissue or tissue.lab"
+        unknown = set(names) - surfaces[module]
+        assert not unknown, f"{path} imports {sorted(unknown)} from {module}, not in its __all__"
+
+
+def _private_crossings(package: str) -> list[str]:
+    """Each place in ``package`` where a module uses another project module's ``_private``
+    name: imported by name, or read as an attribute of an imported module."""
+    found = []
+    for path in sorted((ROOT / package).rglob("*.py")):
+        tree = ast.parse(path.read_text(), filename=str(path))
+        modules: dict[str, str] = {}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                if node.module.split(".")[0] not in ("tissue", "envs", "agents"):
+                    continue
+                for alias in node.names:
+                    if alias.name.startswith("_"):
+                        found.append(f"{path}: {alias.name} from {node.module}")
+                    modules[alias.asname or alias.name] = f"{node.module}.{alias.name}"
+            elif isinstance(node, ast.Import):
+                for alias in node.names:
+                    if alias.name.split(".")[0] in ("tissue", "envs", "agents"):
+                        modules[(alias.asname or alias.name).split(".")[0]] = alias.name
+        for node in ast.walk(tree):
+            if (
+                isinstance(node, ast.Attribute)
+                and node.attr.startswith("_")
+                and not node.attr.startswith("__")
+                and isinstance(node.value, ast.Name)
+                and node.value.id in modules
+            ):
+                found.append(f"{path}: {node.value.id}.{node.attr}")
+    return found
+
+
+@pytest.mark.parametrize("package", ["tissue", "envs", "agents"])
+def test_no_private_name_crosses_a_module_boundary(package: str) -> None:
+    """A ``_name`` is its module's own: what another module needs has a public name (a
+    package's ``__init__`` re-exports it where the package shares it)."""
+    assert _private_crossings(package) == []
+
+
+def test_the_private_name_check_sees_one(tmp_path, monkeypatch) -> None:
+    layout = sys.modules[__name__]
+    fake = tmp_path / "agents"
+    fake.mkdir()
+    (fake / "bad.py").write_text(
+        "from tissue.sim.solvers import _hidden\nimport tissue.profile\nx = tissue._secret\n"
+    )
+    monkeypatch.setattr(layout, "ROOT", tmp_path)
+    found = layout._private_crossings("agents")
+    assert len(found) == 2 and "_hidden" in found[0] and "tissue._secret" in found[1]
+
+
 def test_the_import_check_sees_a_private_import(tmp_path, monkeypatch) -> None:
     """The check above fails on an envs module reaching into tissue's internals."""
     layout = sys.modules[__name__]
@@ -88,6 +153,7 @@ TISSUE_LAYERS = (
         "tissue.step_result",
         "tissue.lesions",
         "tissue.surface_mesh",
+        "tissue.lab",
         "tissue",
     ),
 )

@@ -616,7 +616,7 @@ def test_four_methods_agree_on_a_phantom_compression() -> None:
 def test_each_method_runs_the_published_scene_tumour_1_level_1(
     paper_scene_dir, method: str
 ) -> None:
-    from agents.compress import build_model, plan_scene, run_compression
+    from agents.lab.compress import build_model, plan_scene, run_compression
     from tissue.mesh.paper_scene import load_paper_scene
 
     scene = load_paper_scene(paper_scene_dir)

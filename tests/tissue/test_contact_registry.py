@@ -14,8 +14,8 @@ import pytest
 
 import envs  # noqa: F401 - registers the environments
 import tissue
-from agents.study.runner import run_study
-from agents.study.spec import StudySpec
+from agents.lab.study.runner import run_study
+from agents.lab.study.spec import StudySpec
 from tissue.contact import PenaltyContact, PenaltyParams, register_contact, unregister_contact
 from tissue.contact.penalty import PenaltyTerm
 from tissue.errors import ConfigError

@@ -395,12 +395,12 @@ def test_closed_form_eigen_solver_is_accurate_near_repeated_eigenvalues(gap: flo
     w, v, r = np.empty(3), np.empty((3, 3)), np.empty((3, 3))
     descending = 0
     for a in matrices:
-        kern._sym3_eigen_fast(a.copy(), w, v, r)
+        kern.sym3_eigen_fast(a.copy(), w, v, r)
         scale = np.abs(w).max()
         assert np.abs(a @ v - v * w).max() < 1e-12 * scale
         assert np.abs(v.T @ v - np.eye(3)).max() < 1e-13
         descending += int(w[0] >= w[1] >= w[2])
-    if gap >= 0.1:  # far above kern._CLOSED_FORM_GAP for almost every sample
+    if gap >= 0.1:  # far above kern.CLOSED_FORM_GAP for almost every sample
         assert descending >= 0.9 * count
 
 

@@ -189,7 +189,7 @@ def test_cache_hit_returns_identical_arrays(tmp_path: Path, monkeypatch) -> None
     def must_not_generate(*args, **kwargs):
         raise AssertionError("the cache was not used")
 
-    monkeypatch.setattr(phantom, "_generate_phantom", must_not_generate)
+    monkeypatch.setattr(phantom, "generate_phantom", must_not_generate)
     cached = breast_phantom("623", cache_dir=tmp_path)
     for name in ("nodes", "tets", "region", "fixed_nodes"):
         np.testing.assert_array_equal(getattr(fresh, name), getattr(cached, name))

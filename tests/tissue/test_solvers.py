@@ -15,15 +15,15 @@ from tissue.fem.material import TissueMaterials
 from tissue.mesh.block import block_mesh
 from tissue.sim.pardiso import pardiso_available
 from tissue.sim.solvers import (
-    _NO_BLOCKS,
+    NO_BLOCKS,
     ConstrainedSystem,
     DirectFactorizer,
     LinearSolver,
     LinearSolverConfig,
+    NodeBlocks,
     RankOneTerms,
     SymmetricProduct,
-    _jacobi_pcg,
-    _NodeBlocks,
+    jacobi_pcg,
 )
 from tissue.threads import one_thread_below, parallel_kernel, running_on_one_thread
 
@@ -195,8 +195,8 @@ def test_cg_on_node_blocks_matches_the_dense_reference() -> None:
     assert stiffness is not None
     matrix = (stiffness + 10.0 * sp.eye(stiffness.shape[0], format="csr")).tocsr()
     matrix.sort_indices()
-    assert _NodeBlocks.of(matrix) is not None
-    assert _NodeBlocks.of(_laplacian_3d(6, 0.05)) is None  # scalar pattern: plain CSR products
+    assert NodeBlocks.of(matrix) is not None
+    assert NodeBlocks.of(_laplacian_3d(6, 0.05)) is None  # scalar pattern: plain CSR products
     n = matrix.shape[0]
     rhs = rng.standard_normal(n)
     constrained = rng.random(n) < 0.1
@@ -509,14 +509,14 @@ def test_reuse_products_follow_a_matrix_modified_in_place() -> None:
     solver = LinearSolver(LinearSolverConfig(kind="reuse"))
     system = ConstrainedSystem(matrix.copy(), rng.standard_normal(n), constrained, values)
     fills = 0
-    fill = _NodeBlocks.fill
+    fill = NodeBlocks.fill
 
     def counted(self, data):
         nonlocal fills
         fills += 1
         return fill(self, data)
 
-    _NodeBlocks.fill = counted  # type: ignore[method-assign]
+    NodeBlocks.fill = counted  # type: ignore[method-assign]
     try:
         solver.solve(system, tolerance=1e-10)  # keeps a factor of this matrix
         shifted = matrix.copy()
@@ -539,7 +539,7 @@ def test_reuse_products_follow_a_matrix_modified_in_place() -> None:
         )
         assert fills == 2
     finally:
-        _NodeBlocks.fill = fill  # type: ignore[method-assign]
+        NodeBlocks.fill = fill  # type: ignore[method-assign]
 
 
 def test_parallel_kernels_serial_builds_give_the_parallel_builds_bits_on_one_thread() -> None:
@@ -588,12 +588,12 @@ def test_parallel_kernels_serial_builds_give_the_parallel_builds_bits_on_one_thr
     rhs = rng.standard_normal(matrix.shape[0])
     inverse_diagonal = 1.0 / matrix.diagonal()
     results = []
-    for build in (_jacobi_pcg.parallel, _jacobi_pcg.serial):
+    for build in (jacobi_pcg.parallel, jacobi_pcg.serial):
         x = np.zeros_like(rhs)
         numba.set_num_threads(1)
         try:
             iterations, residual = build(
-                matrix.indptr, matrix.indices, matrix.data, *_NO_BLOCKS, rhs, x,
+                matrix.indptr, matrix.indices, matrix.data, *NO_BLOCKS, rhs, x,
                 inverse_diagonal, 25, 0.0,
             )  # fmt: skip
         finally:
@@ -603,4 +603,4 @@ def test_parallel_kernels_serial_builds_give_the_parallel_builds_bits_on_one_thr
     assert results[0][1] == results[1][1]
     np.testing.assert_array_equal(results[0][2], results[1][2])
     # Cached in files of their own (numba's cache index does not key on ``parallel``).
-    assert _jacobi_pcg.serial.py_func.__qualname__ == "_jacobi_pcg__serial"
+    assert jacobi_pcg.serial.py_func.__qualname__ == "jacobi_pcg__serial"

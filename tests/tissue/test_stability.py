@@ -89,7 +89,7 @@ def _compression_failing_at(call: int, depths: list[float], settle: int) -> dict
     run_compression's record, with the stability monitor on."""
     from dataclasses import replace
 
-    from agents.compress import build_model, plan_straight, run_compression
+    from agents.lab.compress import build_model, plan_straight, run_compression
     from tissue.mesh.phantom import breast_phantom
     from tissue.probe import linear_probe
 

@@ -16,7 +16,7 @@ from tissue.errors import ConfigError
 from tissue.fem.elasticity import Elasticity
 from tissue.fem.material import TissueMaterials
 from tissue.mesh.block import block_mesh
-from tissue.sim.solvers.node_blocks import _matrix_product, _NodeBlocks
+from tissue.sim.solvers.node_blocks import NodeBlocks, matrix_product
 from tissue.threads import configure_threads, running_on_one_thread, thread_policy
 
 POOL_THREADS = int(numba.config.NUMBA_NUM_THREADS)  # type: ignore[attr-defined]
@@ -75,13 +75,13 @@ def test_node_block_products_below_the_cg_threshold_give_the_same_bits_on_any_th
     vectors = np.random.default_rng(12).standard_normal((4, matrix.shape[0]))
 
     def products(node_blocks: bool) -> tuple[np.ndarray, list[float]]:
-        blocks = _NodeBlocks.of(matrix) if node_blocks else None
+        blocks = NodeBlocks.of(matrix) if node_blocks else None
         if node_blocks:
             assert blocks is not None
             blocks.fill(matrix.data)
             assert blocks.partial.shape[0] == 1  # one part below SERIAL_CG_UNKNOWNS
         out = np.empty_like(vectors)
-        totals = [_matrix_product(matrix, blocks, x, y) for x, y in zip(vectors, out, strict=True)]
+        totals = [matrix_product(matrix, blocks, x, y) for x, y in zip(vectors, out, strict=True)]
         for x, y, total in zip(vectors, out, totals, strict=True):
             np.testing.assert_allclose(y, matrix @ x, rtol=1e-12, atol=1e-12 * np.abs(y).max())
             assert total == pytest.approx(float(x @ (matrix @ x)), rel=1e-12)

@@ -248,7 +248,7 @@ class KeptCompliance:
 @numba.njit(cache=True)
 def _add_scaled_rows(rows, which, scales, out):  # pragma: no cover - compiled
     """out += sum_i scales[i] rows[which[i]], in one serial loop (a BLAS product of a tall
-    matrix wakes OpenBLAS's threads: see tissue.sim.solvers._subtract_columns)."""
+    matrix wakes OpenBLAS's threads: see tissue.sim.solvers.subtract_columns)."""
     for i in range(which.shape[0]):
         scale = scales[i]
         if scale == 0.0:

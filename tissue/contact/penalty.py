@@ -278,7 +278,7 @@ class PenaltyTerm:
         rows = np.empty(144 * count, dtype=np.int64)
         cols = np.empty(144 * count, dtype=np.int64)
         values = np.empty(144 * count)
-        _spring_terms(
+        spring_terms(
             tet_nodes,
             weights,
             contacts.normal,
@@ -299,7 +299,7 @@ class PenaltyTerm:
             stiffness_values=values,
             # The same stiffness as one term k_s v v^T per active point, v = (w_a n)_a over
             # its tet's 12 dofs: a kept factorisation is corrected for points entering and
-            # leaving contact in low rank (tissue.sim.solvers._RankOneSince).
+            # leaving contact in low rank (tissue.sim.solvers.RankOneSince).
             rank_one=RankOneTerms(
                 keys=contacts.points[active],
                 dofs=dofs,
@@ -477,7 +477,7 @@ def _diagnostics(result: Any, stiffness: float) -> dict[str, Any]:
 
 
 @numba.njit(cache=True)
-def _spring_terms(
+def spring_terms(
     tet_nodes, weights, normals, magnitudes, stiffness, forces, dofs, vectors, rows, cols, values
 ):  # pragma: no cover - compiled
     """The springs' nodal forces, stiffness triplets and rank-one terms (a compiled loop: in

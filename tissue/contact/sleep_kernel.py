@@ -24,7 +24,7 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-from tissue.probe.pose import _point_in_box
+from tissue.probe.pose import point_in_box
 
 #: Bounds on how far the travel summed here may lie from the Python path's: the sums differ
 #: by a few units in the last place (about 1e-15 relative: TRAVEL_SLACK_M [m] per metre of
@@ -126,7 +126,7 @@ def _any_in_box(points, lo, hi, origin, rotation, bounds, margin):  # pragma: no
         if clear:
             continue
         for i in range(block * BLOCK_POINTS, min(count, (block + 1) * BLOCK_POINTS)):
-            if _point_in_box(points, i, origin, rotation, bounds, margin):
+            if point_in_box(points, i, origin, rotation, bounds, margin):
                 return True
     return False
 

@@ -20,7 +20,7 @@ A step is unstable when any of these holds:
 - ``timeout``: one step took longer than ``step_timeout_s`` of wall time.
 
 The energy bound (elastic + kinetic energy below the work done by the probe) is checked by
-the hard-case runner (:mod:`agents.hard_cases`) for the FE methods, not here: it needs the
+the hard-case runner (:mod:`agents.lab.hard_cases`) for the FE methods, not here: it needs the
 probe's work over the whole run, and the PBD backend has no energy to compare.
 """
 

@@ -28,7 +28,7 @@ Burton (1998, Commun Numer Meth Eng 14:437-449); see :class:`Elasticity` for the
 PSD projection (``project_psd=True``): the negative eigenvalues of every tet's dP/dF are
 clamped to zero using the analytic eigensystem of Smith et al. (2018), so that each
 element Hessian V B^T (dP/dF) B is positive semi-definite; see
-:func:`tissue.fem.kernels._negative_modes`.
+:func:`tissue.fem.kernels.negative_modes`.
 """
 
 from __future__ import annotations

@@ -62,7 +62,7 @@ POSE_COUNT = 5
 _FEATURE_ANGLE_RAD = math.radians(40.0)
 # Characteristic lengths [m] calibrated on the published breast.stl (sha256 prefix below).
 _CALIBRATED_STL_SHA = "9b854cbcf0dbddaf"
-_CALIBRATED_SIZE_M: dict[int, float] = {
+CALIBRATED_SIZE_M: dict[int, float] = {
     623: 0.02004795364174102,
     1363: 0.014579664411196628,
     2539: 0.011732048810989737,
@@ -307,7 +307,7 @@ def _generate_remesh(
 
     started = time.perf_counter()
     surface = directory / SURFACE_FILE
-    initial = _CALIBRATED_SIZE_M.get(level) if stl_sha.startswith(_CALIBRATED_STL_SHA) else None
+    initial = CALIBRATED_SIZE_M.get(level) if stl_sha.startswith(_CALIBRATED_STL_SHA) else None
     trusted = initial is not None
     if initial is None:
         volume = _closed_surface_volume(*read_stl(surface))

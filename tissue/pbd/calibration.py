@@ -142,7 +142,7 @@ def fe_compression(
 
     Every boundary node under the face's outline is held at the face's height along z only
     (frictionless) from the step the face reaches it (robust mode: Newton, stable neo-Hookean,
-    as ``agents/tissue_demo.py``); the force is minus their reaction. The face moves down at
+    as ``agents/lab/tissue_demo.py``); the force is minus their reaction. The face moves down at
     ``speed_m_s`` to ``depth_m`` below first contact, then holds ``hold_s``.
     """
 

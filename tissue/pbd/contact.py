@@ -1,6 +1,6 @@
 """Probe contact of the XPBD tissue: the contact points, their detection and projection.
 
-:func:`_contact_points` chooses the points contact acts on (the free boundary nodes, points
+:func:`choose_contact_points` chooses the points contact acts on (the free boundary nodes, points
 embedded in the boundary faces between them, collision-surface vertices);
 :func:`points_near` is a substep's broad phase; :func:`project_contacts` projects the
 frictionless inequality constraints on the probe's tangent planes; and
@@ -218,7 +218,7 @@ def points_near(
     return count
 
 
-def _contact_points(
+def choose_contact_points(
     mesh: TetMesh, surface: SurfacePoints, spacing_m: float = 0.0, all_skin: bool = False
 ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
     """The points the PBD contact acts on, as an embedding (nodes and weights, (k, 4) each).

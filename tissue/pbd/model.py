@@ -29,7 +29,7 @@ from tissue.mesh import TetMesh
 from tissue.pbd import sweep as sweep_kernels
 from tissue.pbd.config import PBDConfig
 from tissue.pbd.contact import (
-    _contact_points,
+    choose_contact_points,
     contact_zone_sweeps,
     points_near,
     project_contacts,
@@ -216,7 +216,7 @@ class PBDContact(ContactModel):
         h = cfg.substep_dt
         mu_model = mu / cfg.deviatoric_compliance_scale
         lam_model = lam_stable / cfg.volume_compliance_scale
-        point_nodes, point_weights = _contact_points(
+        point_nodes, point_weights = choose_contact_points(
             mesh, self.surface, cfg.contact_spacing_m, cfg.skin_contact
         )
         self._point_nodes = point_nodes  # mesh numbering, for the public positions
@@ -308,7 +308,7 @@ class PBDContact(ContactModel):
         return self._arrays
 
     def contact_points_world(self) -> NDArray[np.float64]:
-        """The points PBD contact acts on [m], (k, 3) (see :func:`_contact_points`)."""
+        """The points PBD contact acts on [m], (k, 3) (see :func:`choose_contact_points`)."""
         return np.einsum("kj,kjd->kd", self._arrays.point_weights, self._x[self._point_nodes])
 
     def contact_points_near(self) -> NDArray[np.float64]:

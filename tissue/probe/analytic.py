@@ -14,8 +14,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import ConvexHull
 
 from tissue.errors import ConfigError
-from tissue.probe.sdf import _extruded_offset_sdf, _rounded_slab_sdf
-from tissue.probe.shape import ProbeShape, _as_points, _positive_size
+from tissue.probe.sdf import extruded_offset_sdf, rounded_slab_sdf
+from tissue.probe.shape import ProbeShape, as_points, positive_size
 from tissue.probe.surface_depth import CYLINDER, ROUNDED_SLAB, SPHERE
 
 # Default face of the linear probe [m], fitted to ../shared/paper-scene/us_probe_collision.stl
@@ -107,11 +107,11 @@ class _RoundedSlab(ProbeShape):
     def signed_distance(
         self, points: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        p = _as_points(points)
+        p = as_points(points)
         hx, hy, hz = self._half
         r = self.edge_radius_m
         # The body's mid-plane is at y = -hy, so the face (top) lies at y = 0.
-        return _rounded_slab_sdf(p, hx - r, hz - r, self.corner_radius_m - r, hy, hy - r, r)
+        return rounded_slab_sdf(p, hx - r, hz - r, self.corner_radius_m - r, hy, hy - r, r)
 
     def compiled_distance(self) -> tuple[int, NDArray[np.float64]]:
         hx, hy, hz = self._half
@@ -188,9 +188,9 @@ class LinearProbeFace(_RoundedSlab):
         corner_radius_m: float = FACE_CORNER_RADIUS_M,
     ) -> None:
         size = (
-            _positive_size(length_m, "face length"),
-            _positive_size(thickness_m, "face thickness"),
-            _positive_size(width_m, "face width"),
+            positive_size(length_m, "face length"),
+            positive_size(thickness_m, "face thickness"),
+            positive_size(width_m, "face width"),
         )
         super().__init__(
             size,
@@ -223,7 +223,7 @@ class BoxProbe(_RoundedSlab):
         if values.shape != (3,):
             raise ConfigError(f"a box needs 3 sizes (LX, LY, LZ) in metres; got {size_m!r}")
         sx, sy, sz = (
-            _positive_size(v, f"box size {axis}") for v, axis in zip(values, "xyz", strict=True)
+            positive_size(v, f"box size {axis}") for v, axis in zip(values, "xyz", strict=True)
         )
         size = (sx, sy, sz)
         super().__init__(size, 0.0, 0.0, name="box:{:g},{:g},{:g}".format(*size))
@@ -239,7 +239,7 @@ class SphereProbe(ProbeShape):
     convex = True
 
     def __init__(self, radius_m: float) -> None:
-        self.radius_m = _positive_size(radius_m, "sphere radius")
+        self.radius_m = positive_size(radius_m, "sphere radius")
         self.edge_radius_m = self.radius_m
         self.name = f"sphere:{self.radius_m:g}"
         self.bounding_radius_m = 2.0 * self.radius_m
@@ -249,7 +249,7 @@ class SphereProbe(ProbeShape):
     def signed_distance(
         self, points: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        offset = _as_points(points) - self._centre
+        offset = as_points(points) - self._centre
         length = np.linalg.norm(offset, axis=1)
         # At the centre every direction is a gradient; +y (out of the face) is the useful one.
         at_centre = length == 0.0
@@ -278,8 +278,8 @@ class CylinderProbe(ProbeShape):
     convex = True
 
     def __init__(self, radius_m: float, height_m: float) -> None:
-        self.radius_m = _positive_size(radius_m, "cylinder radius")
-        self.height_m = _positive_size(height_m, "cylinder height")
+        self.radius_m = positive_size(radius_m, "cylinder radius")
+        self.height_m = positive_size(height_m, "cylinder height")
         self.name = f"cylinder:{self.radius_m:g},{self.height_m:g}"
         self.bounding_radius_m = float(math.hypot(self.radius_m, self.height_m))
         self._surface: tuple[NDArray[np.float64], NDArray[np.int64]] | None = None
@@ -287,14 +287,14 @@ class CylinderProbe(ProbeShape):
     def signed_distance(
         self, points: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        p = _as_points(points)
+        p = as_points(points)
         rho = np.hypot(p[:, 0], p[:, 2])
         on_axis = rho == 0.0
         safe = np.where(on_axis, 1.0, rho)
         # On the axis the radial direction is arbitrary; +x keeps the normal a unit vector.
         radial = np.column_stack([np.where(on_axis, 1.0, p[:, 0] / safe), p[:, 2] / safe])
         half = 0.5 * self.height_m
-        return _extruded_offset_sdf(rho - self.radius_m, radial, p[:, 1] + half, half, 0.0)
+        return extruded_offset_sdf(rho - self.radius_m, radial, p[:, 1] + half, half, 0.0)
 
     def compiled_distance(self) -> tuple[int, NDArray[np.float64]]:
         return CYLINDER, np.array([self.radius_m, 0.5 * self.height_m])

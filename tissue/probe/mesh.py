@@ -15,10 +15,10 @@ from numpy.typing import ArrayLike, NDArray
 
 from tissue.errors import ConfigError, MeshError
 from tissue.probe.shape import (
-    _LARGEST_PLAUSIBLE_SIZE_M,
+    LARGEST_PLAUSIBLE_SIZE_M,
     PROBE_SPEC_FORMS,
     ProbeShape,
-    _as_points,
+    as_points,
 )
 from tissue.probe.triangle import closest_point_on_triangle
 from tissue.threads import parallel_kernel
@@ -157,7 +157,7 @@ class MeshProbe(ProbeShape):
         if mesh.volume < 0.0:
             mesh.invert()
         extent = float(np.max(mesh.extents))
-        if extent > _LARGEST_PLAUSIBLE_SIZE_M:
+        if extent > LARGEST_PLAUSIBLE_SIZE_M:
             raise MeshError(
                 f"probe mesh {label} is {extent:g} units across; probe meshes are in metres "
                 f"(a millimetre file needs scale=0.001)"
@@ -178,7 +178,7 @@ class MeshProbe(ProbeShape):
     def signed_distance(
         self, points: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        p = _as_points(points)
+        p = as_points(points)
         distance = np.empty(p.shape[0])
         normal = np.empty((p.shape[0], 3))
         if p.shape[0]:
@@ -191,7 +191,7 @@ class MeshProbe(ProbeShape):
         """Zeros, shape (n, 3, 3): the normal is the nearest triangle's, constant over a face
         and jumping at edges, so a triangle mesh has no curvature to give (a contact on one
         of its edges converges linearly in Newton)."""
-        return np.zeros((_as_points(points).shape[0], 3, 3))
+        return np.zeros((as_points(points).shape[0], 3, 3))
 
     def surface(self) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         return self.vertices, self.triangles

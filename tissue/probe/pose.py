@@ -15,12 +15,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tissue.errors import ConfigError
-from tissue.probe.rotation import _normalised_quat, matrix_to_quat, quat_to_matrix
-from tissue.probe.shape import ProbeShape, _as_points
+from tissue.probe.rotation import matrix_to_quat, normalised_quat, quat_to_matrix
+from tissue.probe.shape import ProbeShape, as_points
 
 
 @nb.njit(cache=True, inline="always")
-def _point_in_box(points, i, origin, rotation, bounds, margin):  # pragma: no cover - compiled
+def point_in_box(points, i, origin, rotation, bounds, margin):  # pragma: no cover - compiled
     """Whether point i [m] lies in the probe-frame box ``bounds`` widened by ``margin``."""
     for axis in range(3):
         value = (
@@ -37,7 +37,7 @@ def _point_in_box(points, i, origin, rotation, bounds, margin):  # pragma: no co
 def _in_box(points, origin, rotation, bounds, margin, out):  # pragma: no cover - compiled
     """out[i]: point i [m] lies in the probe-frame box ``bounds`` widened by ``margin``."""
     for i in range(points.shape[0]):
-        out[i] = _point_in_box(points, i, origin, rotation, bounds, margin)
+        out[i] = point_in_box(points, i, origin, rotation, bounds, margin)
 
 
 @nb.njit(cache=True)
@@ -45,7 +45,7 @@ def _any_in_box(points, origin, rotation, bounds, margin):  # pragma: no cover -
     """Whether any point [m] lies in the probe-frame box ``bounds`` widened by ``margin``
     (:func:`_in_box`'s test, stopping at the first)."""
     for i in range(points.shape[0]):
-        if _point_in_box(points, i, origin, rotation, bounds, margin):
+        if point_in_box(points, i, origin, rotation, bounds, margin):
             return True
     return False
 
@@ -93,7 +93,7 @@ class Probe:
         position = np.array(position_world, dtype=np.float64).ravel()
         if position.shape != (3,) or not np.all(np.isfinite(position)):
             raise ConfigError(f"probe position must be 3 finite metres; got {position_world!r}")
-        self.quat_wxyz = _normalised_quat(quat_wxyz)
+        self.quat_wxyz = normalised_quat(quat_wxyz)
         self.position_world = position
         self._rotation = quat_to_matrix(self.quat_wxyz)
 
@@ -134,11 +134,11 @@ class Probe:
     def to_probe_frame(self, points_world: ArrayLike) -> NDArray[np.float64]:
         """Points [m], shape (n, 3), from the world to the probe frame."""
         # Row vectors: (R^T (p - c))^T = (p - c)^T R.
-        return (_as_points(points_world) - self.position_world) @ self._rotation
+        return (as_points(points_world) - self.position_world) @ self._rotation
 
     def to_world_frame(self, points_probe: ArrayLike) -> NDArray[np.float64]:
         """Points [m], shape (n, 3), from the probe frame to the world."""
-        return _as_points(points_probe) @ self._rotation.T + self.position_world
+        return as_points(points_probe) @ self._rotation.T + self.position_world
 
     def near(self, points_world: NDArray[np.float64], margin_m: float = 0.0) -> NDArray[np.bool_]:
         """Which points [m] (n, 3) lie within the shape's local bounding box
@@ -250,8 +250,8 @@ class Probe:
             force [N], shape (3,): the sum of the forces; torque [N m], shape (3,): the sum
             of (p - position_world) x f.
         """
-        points = _as_points(points_world)
-        forces = _as_points(forces_world)
+        points = as_points(points_world)
+        forces = as_points(forces_world)
         if points.shape != forces.shape:
             raise ConfigError(
                 f"points {points.shape} and forces {forces.shape} must have the same shape"

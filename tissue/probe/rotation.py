@@ -25,7 +25,7 @@ def quat_to_matrix(quat_wxyz: ArrayLike) -> NDArray[np.float64]:
     Raises:
         ConfigError: a quaternion that is zero, non-finite or not of length 4.
     """
-    return unit_quat_to_matrix(_normalised_quat(quat_wxyz))
+    return unit_quat_to_matrix(normalised_quat(quat_wxyz))
 
 
 def unit_quat_to_matrix(quat: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -89,7 +89,7 @@ def matrix_to_quat(rotation: ArrayLike) -> NDArray[np.float64]:
     return -quat if quat[0] < 0.0 else quat
 
 
-def _normalised_quat(quat_wxyz: ArrayLike) -> NDArray[np.float64]:
+def normalised_quat(quat_wxyz: ArrayLike) -> NDArray[np.float64]:
     """The unit quaternion (w, x, y, z), shape (4,), of ``quat_wxyz``, or a ConfigError for
     one that is not 4 finite numbers or is (nearly) zero."""
     quat = np.asarray(quat_wxyz, dtype=np.float64).ravel()

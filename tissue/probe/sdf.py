@@ -33,10 +33,10 @@ def _offset_box_distance(u: float, v: float) -> tuple[float, float, float]:
 
 
 @nb.njit(cache=True, inline="always")
-def _extruded_offset_point(
+def extruded_offset_point(
     d2: float, g2x: float, g2z: float, y_rel: float, half_height: float, radius: float
 ) -> tuple[float, float, float, float]:
-    """One point of :func:`_extruded_offset_sdf`: (distance, normal x, y, z)."""
+    """One point of :func:`extruded_offset_sdf`: (distance, normal x, y, z)."""
     # In (w_x, w_y): the profile's distance and the distance past the extrusion's ends.
     corner, gx, gy = _offset_box_distance(d2, abs(y_rel) - half_height)
     sy = 1.0 if y_rel >= 0.0 else -1.0
@@ -44,7 +44,7 @@ def _extruded_offset_point(
 
 
 @nb.njit(cache=True, inline="always")
-def _rounded_rectangle_point(
+def rounded_rectangle_point(
     x: float, z: float, half_x: float, half_z: float, corner_radius: float
 ) -> tuple[float, float, float]:
     """Exact 2D SDF [m] and unit gradient (g_x, g_z) at (x, z) [m] of a rounded rectangle
@@ -58,7 +58,7 @@ def _rounded_rectangle_point(
 
 
 @nb.njit(cache=True)
-def _extruded_offset_sdf(d2, g2, y_rel, half_height, radius):  # pragma: no cover - compiled
+def extruded_offset_sdf(d2, g2, y_rel, half_height, radius):  # pragma: no cover - compiled
     """Exact SDF of a 2D x-z profile extruded along y, then offset outwards by ``radius``.
 
     The extrusion of an exact 2D SDF is exact (Quilez's construction), and offsetting an
@@ -80,27 +80,27 @@ def _extruded_offset_sdf(d2, g2, y_rel, half_height, radius):  # pragma: no cove
     distance = np.empty(count)
     normal = np.empty((count, 3))
     for i in range(count):
-        distance[i], normal[i, 0], normal[i, 1], normal[i, 2] = _extruded_offset_point(
+        distance[i], normal[i, 0], normal[i, 1], normal[i, 2] = extruded_offset_point(
             d2[i], g2[i, 0], g2[i, 1], y_rel[i], half_height, radius
         )
     return distance, normal
 
 
 @nb.njit(cache=True)
-def _rounded_slab_sdf(
+def rounded_slab_sdf(
     points, half_x, half_z, corner_radius, mid_offset, half_height, radius
 ):  # pragma: no cover - compiled
-    """:func:`_extruded_offset_sdf` of a rounded rectangle's SDF, in one pass over
+    """:func:`extruded_offset_sdf` of a rounded rectangle's SDF, in one pass over
     ``points`` (n, 3) [m]: y relative to the mid-plane is y + ``mid_offset``. One compiled
     call and no column copies, as PBD calls it every substep on a few dozen points."""
     count = points.shape[0]
     distance = np.empty(count)
     normal = np.empty((count, 3))
     for i in range(count):
-        d2, g2x, g2z = _rounded_rectangle_point(
+        d2, g2x, g2z = rounded_rectangle_point(
             points[i, 0], points[i, 2], half_x, half_z, corner_radius
         )
-        distance[i], normal[i, 0], normal[i, 1], normal[i, 2] = _extruded_offset_point(
+        distance[i], normal[i, 0], normal[i, 1], normal[i, 2] = extruded_offset_point(
             d2, g2x, g2z, points[i, 1] + mid_offset, half_height, radius
         )
     return distance, normal

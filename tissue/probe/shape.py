@@ -17,7 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 from tissue.errors import ConfigError
 
 # Any probe dimension above this [m] was almost certainly given in millimetres.
-_LARGEST_PLAUSIBLE_SIZE_M = 1.0
+LARGEST_PLAUSIBLE_SIZE_M = 1.0
 
 # The command-line spec forms (parse_probe_spec); here because MeshProbe's errors list them.
 PROBE_SPEC_FORMS = (
@@ -86,7 +86,7 @@ class ProbeShape(abc.ABC):
         step (:data:`_HESSIAN_STEP_M`) is far below any radius of the built-in shapes;
         shapes whose distance is not smooth override it.
         """
-        points = _as_points(points)
+        points = as_points(points)
         hessian = np.empty((points.shape[0], 3, 3))
         for axis in range(3):
             offset = np.zeros(3)
@@ -134,7 +134,7 @@ class ProbeShape(abc.ABC):
         return f"{type(self).__name__}({self.name})"
 
 
-def _as_points(points: ArrayLike) -> NDArray[np.float64]:
+def as_points(points: ArrayLike) -> NDArray[np.float64]:
     """Points as a C-contiguous float64 (n, 3) array, or a clear error."""
     array = np.ascontiguousarray(points, dtype=np.float64)
     if array.ndim == 1 and array.shape[0] == 3:
@@ -144,12 +144,12 @@ def _as_points(points: ArrayLike) -> NDArray[np.float64]:
     return array
 
 
-def _positive_size(value: float, what: str) -> float:
+def positive_size(value: float, what: str) -> float:
     """A finite, positive, plausible size in metres, or a ConfigError saying which."""
     number = float(value)
     if not math.isfinite(number) or number <= 0.0:
         raise ConfigError(f"{what} must be a positive number of metres; got {value!r}")
-    if number > _LARGEST_PLAUSIBLE_SIZE_M:
+    if number > LARGEST_PLAUSIBLE_SIZE_M:
         raise ConfigError(
             f"{what} = {number} m is larger than any probe; sizes are in metres "
             f"(did you give millimetres? divide by 1000)"

@@ -9,7 +9,7 @@ from pathlib import Path
 from tissue.errors import ConfigError
 from tissue.probe.analytic import BoxProbe, CylinderProbe, SphereProbe, linear_probe
 from tissue.probe.mesh import load_probe_mesh
-from tissue.probe.shape import _LARGEST_PLAUSIBLE_SIZE_M, PROBE_SPEC_FORMS, ProbeShape
+from tissue.probe.shape import LARGEST_PLAUSIBLE_SIZE_M, PROBE_SPEC_FORMS, ProbeShape
 
 _MESH_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".glb", ".gltf")
 
@@ -26,7 +26,7 @@ def _parse_numbers(spec: str, body: str, count: int) -> list[float]:
     for value in values:
         if not math.isfinite(value) or value <= 0.0:
             raise ConfigError(_spec_message(spec, "sizes must be positive, finite metres"))
-        if value > _LARGEST_PLAUSIBLE_SIZE_M:
+        if value > LARGEST_PLAUSIBLE_SIZE_M:
             raise ConfigError(
                 _spec_message(spec, "sizes are in metres (did you give millimetres?)")
             )

@@ -47,7 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tissue.probe.pose import Probe
-from tissue.probe.sdf import _extruded_offset_point, _rounded_rectangle_point
+from tissue.probe.sdf import extruded_offset_point, rounded_rectangle_point
 from tissue.probe.triangle import closest_point_on_triangle
 
 #: Samples per triangle edge of the barycentric grid a candidate triangle is sampled on.
@@ -230,8 +230,8 @@ def _point_distance(kind, params, x, y, z):  # pragma: no cover - compiled
     """Signed distance [m] and outward normal (x, y, z) at a probe-frame point, for the
     shape ``kind`` with ``params`` (:meth:`tissue.probe.ProbeShape.compiled_distance`)."""
     if kind == ROUNDED_SLAB:
-        d2, g2x, g2z = _rounded_rectangle_point(x, z, params[0], params[1], params[2])
-        return _extruded_offset_point(d2, g2x, g2z, y + params[3], params[4], params[5])
+        d2, g2x, g2z = rounded_rectangle_point(x, z, params[0], params[1], params[2])
+        return extruded_offset_point(d2, g2x, g2z, y + params[3], params[4], params[5])
     if kind == SPHERE:
         radius = params[0]
         dy = y + radius
@@ -243,7 +243,7 @@ def _point_distance(kind, params, x, y, z):  # pragma: no cover - compiled
     rho = math.hypot(x, z)
     gx = x / rho if rho > 0.0 else 1.0
     gz = z / rho if rho > 0.0 else 0.0
-    return _extruded_offset_point(rho - params[0], gx, gz, y + params[1], params[1], 0.0)
+    return extruded_offset_point(rho - params[0], gx, gz, y + params[1], params[1], 0.0)
 
 
 @nb.njit(cache=True, inline="always")

@@ -42,7 +42,7 @@ from numpy.typing import NDArray
 from tissue.contact.fe_model import constraint_rows, transpose_product
 from tissue.contact.lagrange.iterate import FreeStep, Iterate, NewtonRun
 from tissue.contact.lagrange.response import ContactResponses
-from tissue.contact.lagrange.state import _report
+from tissue.contact.lagrange.state import solve_report
 from tissue.contact.lagrange.tangent import ContactTangent
 from tissue.sim.integrator import IncrementalPotential
 from tissue.sim.solvers import ConstrainedSystem, vector_norm
@@ -558,7 +558,7 @@ class RobustSteps(ContactResponses, ContactTangent):
             new_x,
             new_v,
             reaction,
-            _report(False),
+            solve_report(False),
             newton_iterations=run.iterations,
             newton_residual=at.residual,
             known=known,

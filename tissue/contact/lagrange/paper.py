@@ -28,7 +28,7 @@ import numpy as np
 
 from tissue.contact.fe_model import constraint_rows, transpose_product
 from tissue.contact.lagrange.response import ContactResponses
-from tissue.contact.lagrange.state import _report
+from tissue.contact.lagrange.state import solve_report
 from tissue.status import StepStatus
 
 
@@ -72,7 +72,7 @@ class PaperSteps(ContactResponses):
             dv = free_dv + impulse_per_force * correction
             # The multipliers act as extra right-hand side: include them in the reactions.
             linear.rhs[:] = linear.rhs + transpose_product(rows, impulse_per_force * forces)
-        outcome = integrator.paper_finish(x, v, h, linear, dv, _report(indefinite))
+        outcome = integrator.paper_finish(x, v, h, linear, dv, solve_report(indefinite))
         status = sim.commit(outcome, h, start).status
         points, on_probe = self._finish(contacts, forces)
         diagnostics = {

@@ -222,6 +222,6 @@ class LagrangeState(FEContactModel):
         return positions[active], -forces[active, None] * normal
 
 
-def _report(indefinite: bool) -> SolveReport:
+def solve_report(indefinite: bool) -> SolveReport:
     """What a direct solve did, for the integrator's bookkeeping."""
     return SolveReport(0, 0.0, True, True, indefinite)

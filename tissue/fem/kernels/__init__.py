@@ -32,8 +32,8 @@ from tissue.fem.kernels.anp import (
     patch_pair_positions,
 )
 from tissue.fem.kernels.assembly import block_contributions, gather_elements, gather_forces
-from tissue.fem.kernels.eigen import _CLOSED_FORM_GAP as _CLOSED_FORM_GAP
-from tissue.fem.kernels.eigen import _sym3_eigen_fast as _sym3_eigen_fast
+from tissue.fem.kernels.eigen import CLOSED_FORM_GAP as CLOSED_FORM_GAP
+from tissue.fem.kernels.eigen import sym3_eigen_fast as sym3_eigen_fast
 from tissue.fem.kernels.element import (
     LAW_CLASSIC,
     LAW_STABLE,
@@ -50,7 +50,7 @@ from tissue.fem.kernels.geometry import (
     volume_ratios,
 )
 from tissue.fem.kernels.projection import MAX_NEGATIVE_MODES
-from tissue.fem.kernels.projection import _negative_modes as _negative_modes
+from tissue.fem.kernels.projection import negative_modes as negative_modes
 
 __all__ = [
     "LAW_CLASSIC",

@@ -25,7 +25,7 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
-from tissue.fem.kernels.geometry import _CHUNK, PAIR_INDEX, _upper_index
+from tissue.fem.kernels.geometry import CHUNK, PAIR_INDEX, upper_index
 from tissue.threads import parallel_kernel
 
 # The gather's tables over local nodes (a, c): offset of the pair's vector, its sign (w_ca =
@@ -36,7 +36,7 @@ _PAIR_SIGN = np.array(
     [[0.0 if a == c else (1.0 if a < c else -1.0) for c in range(4)] for a in range(4)]
 )
 _DOT_COLUMN = np.array(
-    [[_upper_index(min(a, c), max(a, c)) for c in range(4)] for a in range(4)], dtype=np.int64
+    [[upper_index(min(a, c), max(a, c)) for c in range(4)] for a in range(4)], dtype=np.int64
 )
 
 
@@ -52,8 +52,8 @@ def gather_forces(
     """Nodal forces -dE/dx [N] into ``forces``: minus the tets' contributions, summed in
     incidence order."""
     node_count = incidence_ptr.shape[0] - 1
-    for chunk in nb.prange((node_count + _CHUNK - 1) // _CHUNK):
-        for ordinal in range(chunk * _CHUNK, min(node_count, (chunk + 1) * _CHUNK)):
+    for chunk in nb.prange((node_count + CHUNK - 1) // CHUNK):
+        for ordinal in range(chunk * CHUNK, min(node_count, (chunk + 1) * CHUNK)):
             b = node_order[ordinal]
             fx = 0.0
             fy = 0.0
@@ -154,8 +154,8 @@ def gather_elements(
     tet instead of 16.
     """
     node_count = block_ptr.shape[0] - 1
-    for chunk in nb.prange((node_count + _CHUNK - 1) // _CHUNK):
-        for ordinal in range(chunk * _CHUNK, min(node_count, (chunk + 1) * _CHUNK)):
+    for chunk in nb.prange((node_count + CHUNK - 1) // CHUNK):
+        for ordinal in range(chunk * CHUNK, min(node_count, (chunk + 1) * CHUNK)):
             b = node_order[ordinal]
             first = block_ptr[b]
             row_base = 9 * first

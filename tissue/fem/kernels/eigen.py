@@ -1,6 +1,6 @@
 """Eigen-decomposition of symmetric 3x3 matrices, for the PSD projection.
 
-:func:`_sym3_eigen_fast` solves in closed form (Smith 1961) where the eigenvalues are well
+:func:`sym3_eigen_fast` solves in closed form (Smith 1961) where the eigenvalues are well
 apart and falls back to the cyclic Jacobi iteration :func:`_sym3_eigen`, robust for
 repeated eigenvalues, where they are not.
 """
@@ -67,7 +67,7 @@ def _sym3_eigen(a: np.ndarray, w: np.ndarray, v: np.ndarray, r: np.ndarray) -> N
 
 # The closed-form 3x3 eigen-solver below is used when every eigenvalue gap is at least this
 # fraction of the largest |eigenvalue|; closer ones go to the Jacobi iteration.
-_CLOSED_FORM_GAP = 1e-3
+CLOSED_FORM_GAP = 1e-3
 
 
 @nb.njit(inline="always", cache=True, fastmath=False)
@@ -107,12 +107,12 @@ def _eigenvector(a: np.ndarray, lam: float, v: np.ndarray, column: int) -> bool:
 
 
 @nb.njit(cache=True, fastmath=False)
-def _sym3_eigen_fast(a: np.ndarray, w: np.ndarray, v: np.ndarray, r: np.ndarray) -> None:
+def sym3_eigen_fast(a: np.ndarray, w: np.ndarray, v: np.ndarray, r: np.ndarray) -> None:
     """As :func:`_sym3_eigen` (same arguments; ``a`` destroyed), in closed form where the
     eigenvalues are well apart: the trigonometric solution of the characteristic cubic
     (Smith 1961), eigenvectors as cross products of rows of a - lambda I for the largest and
     smallest, the middle one completing a right-handed basis. Near-repeated eigenvalues
-    (within :data:`_CLOSED_FORM_GAP`, where those cross products lose accuracy: every tet
+    (within :data:`CLOSED_FORM_GAP`, where those cross products lose accuracy: every tet
     near rest) go to the Jacobi iteration, which takes several sweeps per matrix."""
     off = a[0, 1] * a[0, 1] + a[0, 2] * a[0, 2] + a[1, 2] * a[1, 2]
     q = (a[0, 0] + a[1, 1] + a[2, 2]) / 3.0
@@ -137,7 +137,7 @@ def _sym3_eigen_fast(a: np.ndarray, w: np.ndarray, v: np.ndarray, r: np.ndarray)
     middle = 3.0 * q - largest - smallest
     scale = max(abs(largest), abs(smallest))
     gap = min(largest - middle, middle - smallest)
-    if gap < _CLOSED_FORM_GAP * scale:
+    if gap < CLOSED_FORM_GAP * scale:
         _sym3_eigen(a, w, v, r)
         return
     if not (_eigenvector(a, largest, v, 0) and _eigenvector(a, smallest, v, 2)):

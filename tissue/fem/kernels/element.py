@@ -23,8 +23,8 @@ import math
 import numba as nb
 import numpy as np
 
-from tissue.fem.kernels.geometry import _CHUNK, PAIRS, _deformation
-from tissue.fem.kernels.projection import MAX_NEGATIVE_MODES, _negative_modes
+from tissue.fem.kernels.geometry import CHUNK, PAIRS, deformation_gradient
+from tissue.fem.kernels.projection import MAX_NEGATIVE_MODES, negative_modes
 from tissue.threads import parallel_kernel
 
 LAW_STABLE = 0
@@ -100,15 +100,15 @@ def element_pass(
     projected element matrix is K_e + sum_m c_m c_m^T.
     """
     tet_count = tets.shape[0]
-    chunk_count = (tet_count + _CHUNK - 1) // _CHUNK
+    chunk_count = (tet_count + CHUNK - 1) // CHUNK
     for chunk in nb.prange(chunk_count):
         scratch = np.empty((6, 3, 3))
         vec = np.empty((3, 3))
         values = np.empty(MAX_NEGATIVE_MODES)
         matrices = np.empty((MAX_NEGATIVE_MODES, 9))
         f = np.empty(9)
-        for e in range(chunk * _CHUNK, min(tet_count, (chunk + 1) * _CHUNK)):
-            _deformation(x, tets, grads, e, f)
+        for e in range(chunk * CHUNK, min(tet_count, (chunk + 1) * CHUNK)):
+            deformation_gradient(x, tets, grads, e, f)
             # cof F: columns are f1 x f2, f2 x f0, f0 x f1 (f_j the columns of F).
             c00 = f[4] * f[8] - f[7] * f[5]
             c10 = f[7] * f[2] - f[1] * f[8]
@@ -229,7 +229,7 @@ def element_pass(
             if project:
                 count = 0
                 if mm > 0.0:
-                    count = _negative_modes(f, mm, dpsi, ddpsi, scratch, vec, values, matrices)
+                    count = negative_modes(f, mm, dpsi, ddpsi, scratch, vec, values, matrices)
                 mode_count[e] = count
                 for k in range(count):
                     amp = math.sqrt(-vol * values[k])

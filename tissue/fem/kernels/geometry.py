@@ -6,7 +6,7 @@ every kernel of :mod:`tissue.fem.kernels`:
 * 3x3 matrices are stored flat, row-major: ``M[3 i + j] = M_ij``.
 * Local node pairs (a, c), a < c, are numbered as in :data:`PAIRS`; per-tet dot products
   G_a . G_c follow the row-major upper triangle of a 4x4 matrix (:func:`rest_grad_dots`).
-* Parallel loops run over chunks of :data:`_CHUNK` tets (or nodes).
+* Parallel loops run over chunks of :data:`CHUNK` tets (or nodes).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from tissue.threads import parallel_kernel
 
 # Tets per parallel chunk: scratch arrays are allocated once per chunk, not per tet.
-_CHUNK = 256
+CHUNK = 256
 
 
 def shape_gradients(
@@ -46,7 +46,9 @@ def shape_gradients(
 
 
 @nb.njit(inline="always", cache=True, fastmath=False)
-def _deformation(x: np.ndarray, tets: np.ndarray, grads: np.ndarray, e: int, f: np.ndarray) -> None:
+def deformation_gradient(
+    x: np.ndarray, tets: np.ndarray, grads: np.ndarray, e: int, f: np.ndarray
+) -> None:
     for i in range(9):
         f[i] = 0.0
     for a in range(4):
@@ -61,10 +63,10 @@ def _deformation(x: np.ndarray, tets: np.ndarray, grads: np.ndarray, e: int, f: 
 def volume_ratios(x: np.ndarray, tets: np.ndarray, grads: np.ndarray, out: np.ndarray) -> None:
     """J = det F per tet into ``out`` (tet_count,), from positions x [m] (node_count, 3)."""
     tet_count = tets.shape[0]
-    for chunk in nb.prange((tet_count + _CHUNK - 1) // _CHUNK):
+    for chunk in nb.prange((tet_count + CHUNK - 1) // CHUNK):
         f = np.empty(9)
-        for e in range(chunk * _CHUNK, min(tet_count, (chunk + 1) * _CHUNK)):
-            _deformation(x, tets, grads, e, f)
+        for e in range(chunk * CHUNK, min(tet_count, (chunk + 1) * CHUNK)):
+            deformation_gradient(x, tets, grads, e, f)
             out[e] = (
                 f[0] * (f[4] * f[8] - f[5] * f[7])
                 - f[1] * (f[3] * f[8] - f[5] * f[6])
@@ -78,7 +80,7 @@ PAIRS = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np.int6
 PAIR_INDEX = np.array([[0, 0, 1, 2], [0, 0, 3, 4], [1, 3, 0, 5], [2, 4, 5, 0]], dtype=np.int64)
 
 
-def _upper_index(a: int, c: int) -> int:
+def upper_index(a: int, c: int) -> int:
     """Position of (a, c), a <= c, in the row-major upper triangle of a 4x4 matrix."""
     return 4 * a - a * (a - 1) // 2 + c - a
 

@@ -12,7 +12,7 @@ import math
 import numba as nb
 import numpy as np
 
-from tissue.fem.kernels.eigen import _sym3_eigen_fast
+from tissue.fem.kernels.eigen import sym3_eigen_fast
 
 # At most 3 twist/flip modes (one per pair can be negative) and 3 scaling modes.
 MAX_NEGATIVE_MODES = 6
@@ -21,7 +21,7 @@ _CLAMP_TOLERANCE = 1e-12
 
 
 @nb.njit(cache=True, fastmath=False)
-def _negative_modes(
+def negative_modes(
     f: np.ndarray,
     mu: float,
     dpsi: float,
@@ -73,7 +73,7 @@ def _negative_modes(
     if ddpsi >= 0.0 and 2.0 * abs(dpsi) * math.sqrt(gersh) <= mu:
         return 0
     w = vec[0]
-    _sym3_eigen_fast(c, w, vm, r)
+    sym3_eigen_fast(c, w, vm, r)
     # Sort descending (insertion sort on 3 entries), carrying the eigenvector columns.
     for i in range(1, 3):
         j = i
@@ -177,7 +177,7 @@ def _negative_modes(
     )
     if sblock[0, 0] > 0.0 and minor2 > 0.0 and minor3 > 0.0:
         return count
-    _sym3_eigen_fast(sblock, w, zm, r)
+    sym3_eigen_fast(sblock, w, zm, r)
     for m in range(3):
         if w[m] < tol and count < MAX_NEGATIVE_MODES:
             out_value[count] = w[m]

@@ -64,21 +64,20 @@ Modules: :mod:`~tissue.mesh.phantom.spec` (shape and lesions),
 """
 
 from tissue.mesh.phantom.cache import CACHE_ENV_VAR, cached_mesh, mesh_cache_dir
-from tissue.mesh.phantom.calibration import _CALIBRATION_ACCEPT as _CALIBRATION_ACCEPT
+from tissue.mesh.phantom.calibration import CALIBRATION_ACCEPT as CALIBRATION_ACCEPT
 from tissue.mesh.phantom.calibration import (
-    _CALIBRATION_MAX_ITERATIONS as _CALIBRATION_MAX_ITERATIONS,
+    CALIBRATION_MAX_ITERATIONS as CALIBRATION_MAX_ITERATIONS,
 )
 from tissue.mesh.phantom.calibration import LEVEL_TOLERANCE, calibrate_size
-from tissue.mesh.phantom.gmsh_backend import _compact as _compact
-from tissue.mesh.phantom.gmsh_backend import _RawMesh as _RawMesh
-from tissue.mesh.phantom.gmsh_backend import _set_sigpipe as _set_sigpipe
+from tissue.mesh.phantom.gmsh_backend import RawMesh as RawMesh
+from tissue.mesh.phantom.gmsh_backend import compact as compact
 from tissue.mesh.phantom.gmsh_backend import (
     extract_surface_mesh,
     extract_volume_mesh,
     gmsh_session,
 )
-from tissue.mesh.phantom.ladder import _CALIBRATED_SIZE_M as _CALIBRATED_SIZE_M
-from tissue.mesh.phantom.ladder import _LESION_SHAPE_BY_LEVEL as _LESION_SHAPE_BY_LEVEL
+from tissue.mesh.phantom.gmsh_backend import set_sigpipe as set_sigpipe
+from tissue.mesh.phantom.ladder import CALIBRATED_SIZE_M as CALIBRATED_SIZE_M
 from tissue.mesh.phantom.ladder import (
     GENERATOR_VERSION,
     PHANTOM_LEVELS,
@@ -86,25 +85,26 @@ from tissue.mesh.phantom.ladder import (
     describe_mesh,
     parse_level,
 )
-from tissue.mesh.phantom.ladder import _generate_phantom as _generate_phantom
-from tissue.mesh.phantom.lesion_shapes import _LARGEST_INFLATION as _LARGEST_INFLATION
+from tissue.mesh.phantom.ladder import LESION_SHAPE_BY_LEVEL as LESION_SHAPE_BY_LEVEL
+from tissue.mesh.phantom.ladder import generate_phantom as generate_phantom
+from tissue.mesh.phantom.lesion_shapes import LARGEST_INFLATION as LARGEST_INFLATION
 from tissue.mesh.phantom.lesion_shapes import (
-    _SMALLEST_KEPT_VOLUME_FRACTION as _SMALLEST_KEPT_VOLUME_FRACTION,
+    SMALLEST_KEPT_VOLUME_FRACTION as SMALLEST_KEPT_VOLUME_FRACTION,
 )
-from tissue.mesh.phantom.lesion_shapes import _SPHERE_SIZE_PER_RADIUS as _SPHERE_SIZE_PER_RADIUS
-from tissue.mesh.phantom.lesion_shapes import _add_convex_polyhedron as _add_convex_polyhedron
-from tissue.mesh.phantom.lesion_shapes import _lesion_polyhedron as _lesion_polyhedron
-from tissue.mesh.phantom.lesion_shapes import _match_lesion_volumes as _match_lesion_volumes
+from tissue.mesh.phantom.lesion_shapes import SPHERE_SIZE_PER_RADIUS as SPHERE_SIZE_PER_RADIUS
+from tissue.mesh.phantom.lesion_shapes import add_convex_polyhedron as add_convex_polyhedron
+from tissue.mesh.phantom.lesion_shapes import lesion_polyhedron as lesion_polyhedron
+from tissue.mesh.phantom.lesion_shapes import match_lesion_volumes as match_lesion_volumes
 from tissue.mesh.phantom.lesion_shapes import (
-    _meshed_unit_sphere_volume_ratio as _meshed_unit_sphere_volume_ratio,
+    meshed_unit_sphere_volume_ratio as meshed_unit_sphere_volume_ratio,
 )
 from tissue.mesh.phantom.lesion_shapes import volume_keeping_radius
 from tissue.mesh.phantom.meshing import (
-    _CALIBRATED_COLLISION_SIZE_M as _CALIBRATED_COLLISION_SIZE_M,
+    CALIBRATED_COLLISION_SIZE_M as CALIBRATED_COLLISION_SIZE_M,
 )
-from tissue.mesh.phantom.meshing import _add_dome as _add_dome
-from tissue.mesh.phantom.meshing import _mesh_phantom_volume as _mesh_phantom_volume
-from tissue.mesh.phantom.meshing import _orient_outward as _orient_outward
+from tissue.mesh.phantom.meshing import add_dome as add_dome
+from tissue.mesh.phantom.meshing import mesh_phantom_volume as mesh_phantom_volume
+from tissue.mesh.phantom.meshing import orient_outward as orient_outward
 from tissue.mesh.phantom.meshing import phantom_collision_surface
 from tissue.mesh.phantom.spec import DEFAULT_LESIONS, LesionSpec, PhantomSpec
 

@@ -19,8 +19,8 @@ LEVEL_TOLERANCE = 0.10
 
 # Calibration stops once within this of the target; 10 % is the contract, 3 % leaves room
 # for small platform differences in gmsh when a stored size is reused elsewhere.
-_CALIBRATION_ACCEPT = 0.03
-_CALIBRATION_MAX_ITERATIONS = 10
+CALIBRATION_ACCEPT = 0.03
+CALIBRATION_MAX_ITERATIONS = 10
 
 
 def calibrate_size(
@@ -51,13 +51,13 @@ def calibrate_size(
     size = initial_size
     history: list[tuple[float, int]] = []
     best: tuple[float, Any, float] | None = None
-    for _ in range(_CALIBRATION_MAX_ITERATIONS):
+    for _ in range(CALIBRATION_MAX_ITERATIONS):
         result = mesh_at(size)
         count = count_of(result)
         error = abs(count / target - 1.0)
         if best is None or error < best[0]:
             best = (error, result, size)
-        if error <= _CALIBRATION_ACCEPT or (
+        if error <= CALIBRATION_ACCEPT or (
             trusted_initial and not history and error <= LEVEL_TOLERANCE
         ):
             break

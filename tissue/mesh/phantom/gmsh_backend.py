@@ -25,7 +25,7 @@ from tissue.errors import MeshError
 from tissue.mesh import signed_tet_volumes
 
 
-def _set_sigpipe(action: Any) -> None:
+def set_sigpipe(action: Any) -> None:
     """Put SIGPIPE's action back after gmsh's initialisation, which sets the OS-level action
     to the default (end the process) behind Python's back. Python ignores SIGPIPE so that a
     write to a closed pipe raises ``BrokenPipeError``; without this, a process whose pipes
@@ -53,7 +53,7 @@ def gmsh_session(verbose: bool = False) -> Iterator[Any]:
     if owned:
         pipe_action = signal.getsignal(signal.SIGPIPE)
         gmsh.initialize(readConfigFiles=False, interruptible=False)
-        _set_sigpipe(pipe_action)
+        set_sigpipe(pipe_action)
     try:
         gmsh.model.add(f"probegym-{time.monotonic_ns()}")
         options = {
@@ -89,7 +89,7 @@ def gmsh_session(verbose: bool = False) -> Iterator[Any]:
 
 
 @dataclass
-class _RawMesh:
+class RawMesh:
     nodes: NDArray[np.float64]
     tets: NDArray[np.int64]
     region: NDArray[np.int64]
@@ -99,7 +99,7 @@ class _RawMesh:
         return int(self.tets.shape[0])
 
 
-def extract_volume_mesh(gmsh: Any, region_of_volume: dict[int, int]) -> _RawMesh:
+def extract_volume_mesh(gmsh: Any, region_of_volume: dict[int, int]) -> RawMesh:
     """Tets of the current gmsh model, nodes renumbered compactly in tag order, tets
     positively oriented, region label from the volume entity each tet belongs to."""
     tag_blocks, region_blocks = [], []
@@ -114,10 +114,10 @@ def extract_volume_mesh(gmsh: Any, region_of_volume: dict[int, int]) -> _RawMesh
     if not tag_blocks:
         raise MeshError("gmsh produced no tetrahedra")
     region = np.concatenate(region_blocks)
-    nodes, tets = _compact(gmsh, np.concatenate(tag_blocks))
+    nodes, tets = compact(gmsh, np.concatenate(tag_blocks))
     negative = signed_tet_volumes(nodes, tets) < 0
     tets[negative, 2], tets[negative, 3] = tets[negative, 3], tets[negative, 2].copy()
-    return _RawMesh(nodes=nodes, tets=tets, region=region)
+    return RawMesh(nodes=nodes, tets=tets, region=region)
 
 
 def extract_surface_mesh(gmsh: Any) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
@@ -129,10 +129,10 @@ def extract_surface_mesh(gmsh: Any) -> tuple[NDArray[np.float64], NDArray[np.int
             if element_type != 2:  # 2 = 3-node triangle
                 raise MeshError(f"gmsh produced element type {element_type}; expected triangles")
             blocks.append(np.asarray(tags, dtype=np.int64).reshape(-1, 3))
-    return _compact(gmsh, np.concatenate(blocks))
+    return compact(gmsh, np.concatenate(blocks))
 
 
-def _compact(
+def compact(
     gmsh: Any, element_tags: NDArray[np.int64]
 ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """Positions [m] of the nodes the elements use, and the elements renumbered onto them.

@@ -3,7 +3,7 @@ generator :func:`breast_phantom`.
 
 A level is a tet count of :data:`PHANTOM_LEVELS`; each is meshed at a characteristic length
 calibrated (:func:`~tissue.mesh.phantom.calibration.calibrate_size`) to hit the count within
-10 %, starting from :data:`_CALIBRATED_SIZE_M` for the default spec. The three coarsest
+10 %, starting from :data:`CALIBRATED_SIZE_M` for the default spec. The three coarsest
 levels represent lesions as regular polyhedra, the others as spheres (see
 :mod:`tissue.mesh.phantom`).
 """
@@ -21,7 +21,7 @@ from tissue.mesh import TetMesh
 from tissue.mesh.phantom.cache import mesh_cache_dir
 from tissue.mesh.phantom.calibration import calibrate_size
 from tissue.mesh.phantom.meshing import (
-    _mesh_phantom_volume,
+    mesh_phantom_volume,
     phantom_collision_surface,
     phantom_skin_at,
 )
@@ -35,11 +35,11 @@ GENERATOR_VERSION = 1
 PHANTOM_LEVELS: tuple[int, ...] = (623, 1363, 2539, 4126, 7369, 12861, 26220, 105004, 176506)
 
 # Lesion representation per level (see the package docstring).
-_LESION_SHAPE_BY_LEVEL = {623: "tetrahedron", 1363: "octahedron", 2539: "icosahedron"}
+LESION_SHAPE_BY_LEVEL = {623: "tetrahedron", 1363: "octahedron", 2539: "icosahedron"}
 
 # Characteristic lengths [m] calibrated for the default PhantomSpec with this gmsh version;
 # other specs (or a gmsh giving other counts) start from these and iterate.
-_CALIBRATED_SIZE_M: dict[int, float] = {
+CALIBRATED_SIZE_M: dict[int, float] = {
     623: 0.028926726215092957,
     1363: 0.02288304341675446,
     2539: 0.03419015372941661,
@@ -104,11 +104,11 @@ def breast_phantom(
     if not isinstance(spec, PhantomSpec):
         raise ConfigError(f"spec must be a PhantomSpec; got {type(spec).__name__}")
     key = f"phantom-g{GENERATOR_VERSION}-{level}-{spec.content_hash()[:16]}.npz"
-    # Via the package at call time, so patching its cached_mesh/_generate_phantom takes effect.
+    # Via the package at call time, so patching its cached_mesh/generate_phantom takes effect.
     from tissue.mesh import phantom
 
     mesh = phantom.cached_mesh(
-        mesh_cache_dir(cache_dir) / key, lambda: phantom._generate_phantom(level, spec, verbose)
+        mesh_cache_dir(cache_dir) / key, lambda: phantom.generate_phantom(level, spec, verbose)
     )
     if collision_edge_m is None:
         return mesh
@@ -131,11 +131,11 @@ def describe_mesh(mesh: TetMesh) -> str:
     )
 
 
-def _generate_phantom(level: int, spec: PhantomSpec, verbose: bool) -> TetMesh:
+def generate_phantom(level: int, spec: PhantomSpec, verbose: bool) -> TetMesh:
     started = time.perf_counter()
-    shape = _LESION_SHAPE_BY_LEVEL.get(level, "sphere")
+    shape = LESION_SHAPE_BY_LEVEL.get(level, "sphere")
     is_default = spec == PhantomSpec()
-    initial = _CALIBRATED_SIZE_M.get(level) if is_default else None
+    initial = CALIBRATED_SIZE_M.get(level) if is_default else None
     trusted = initial is not None
     if initial is None:
         # Regular tets of volume V / N have edge (6 sqrt(2) V / N)^(1/3); gmsh's are a bit
@@ -144,7 +144,7 @@ def _generate_phantom(level: int, spec: PhantomSpec, verbose: bool) -> TetMesh:
     tracked = spec.lesion_tracked_points_m()
 
     raw, size, attempts = calibrate_size(
-        lambda h: _mesh_phantom_volume(spec, shape, h, verbose),
+        lambda h: mesh_phantom_volume(spec, shape, h, verbose),
         lambda r: r.tet_count,
         level,
         initial,

@@ -1,11 +1,11 @@
 """What a lesion is in the mesh: a volume-keeping regular polyhedron or an inflated sphere.
 
 Ten conforming spheres need at least about 3k tets, so the coarse levels mesh each lesion as
-a regular polyhedron (:func:`_lesion_polyhedron`) with the sphere's centre and exactly its
+a regular polyhedron (:func:`lesion_polyhedron`) with the sphere's centre and exactly its
 volume, one vertex straight up over the tracked point. Finer levels mesh a sphere; a meshed
 sphere is an inscribed polyhedron holding as little as 65 % of the volume at 2 radii per
 edge, so gmsh gets a sphere inflated by :func:`volume_keeping_radius` (at most 25 % in
-radius) and :func:`_match_lesion_volumes` scales the lesion's nodes by the last few % so that
+radius) and :func:`match_lesion_volumes` scales the lesion's nodes by the last few % so that
 its tets hold exactly the sphere's volume. Lengths are metres.
 """
 
@@ -19,16 +19,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tissue.mesh import signed_tet_volumes
-from tissue.mesh.phantom.gmsh_backend import _RawMesh, extract_surface_mesh, gmsh_session
+from tissue.mesh.phantom.gmsh_backend import RawMesh, extract_surface_mesh, gmsh_session
 
 # A spherical lesion's mesh size relative to its radius when the global size is coarser:
 # about 30 tets per lesion, the fewest that still look round.
-_SPHERE_SIZE_PER_RADIUS = 2.0
+SPHERE_SIZE_PER_RADIUS = 2.0
 # A coarse sphere is inflated by at most this factor in radius to keep its volume.
-_LARGEST_INFLATION = 1.25
+LARGEST_INFLATION = 1.25
 
 
-def _lesion_polyhedron(
+def lesion_polyhedron(
     centre: NDArray[np.float64], radius: float, shape: str
 ) -> NDArray[np.float64]:
     """Vertices [m] of a regular polyhedron (``shape``: tetrahedron, octahedron or
@@ -65,7 +65,7 @@ def _lesion_polyhedron(
     return centre + scale * unit
 
 
-def _add_convex_polyhedron(occ: Any, vertices: NDArray[np.float64]) -> int:
+def add_convex_polyhedron(occ: Any, vertices: NDArray[np.float64]) -> int:
     """A convex polyhedron (flat triangular faces) in the OCC kernel; returns its volume tag."""
     from scipy.spatial import ConvexHull
 
@@ -89,11 +89,11 @@ def _add_convex_polyhedron(occ: Any, vertices: NDArray[np.float64]) -> int:
 
 # A lesion's volume correction is skipped if it would leave a neighbouring tet with less
 # than this fraction of its volume.
-_SMALLEST_KEPT_VOLUME_FRACTION = 0.5
+SMALLEST_KEPT_VOLUME_FRACTION = 0.5
 
 
-def _match_lesion_volumes(
-    raw: _RawMesh, centres: NDArray[np.float64], radii: NDArray[np.float64]
+def match_lesion_volumes(
+    raw: RawMesh, centres: NDArray[np.float64], radii: NDArray[np.float64]
 ) -> None:
     """Scale each spherical lesion's nodes about its centre so that its tets hold exactly the
     sphere's volume (the inflation before meshing gets within about 10 %; this removes the
@@ -109,13 +109,13 @@ def _match_lesion_volumes(
         touching = np.any(np.isin(raw.tets, lesion_nodes), axis=1)
         before = signed_tet_volumes(raw.nodes, raw.tets[touching])
         after = signed_tet_volumes(moved, raw.tets[touching])
-        if np.all(after > _SMALLEST_KEPT_VOLUME_FRACTION * before):
+        if np.all(after > SMALLEST_KEPT_VOLUME_FRACTION * before):
             raw.nodes[:] = moved
 
 
 def volume_keeping_radius(radius: float, size: float, verbose: bool = False) -> float:
     """The radius [m] to give gmsh so that a sphere meshed at ``size`` [m] (capped at
-    ``_SPHERE_SIZE_PER_RADIUS`` radii) encloses the volume of a sphere of ``radius`` [m].
+    ``SPHERE_SIZE_PER_RADIUS`` radii) encloses the volume of a sphere of ``radius`` [m].
 
     A meshed sphere is an inscribed polyhedron: at two radii per edge it holds about 65 %
     of the sphere's volume, which would soften a coarse mesh's lesion. The polyhedron's
@@ -123,14 +123,14 @@ def volume_keeping_radius(radius: float, size: float, verbose: bool = False) -> 
     """
     meshed = radius
     for _ in range(3):  # a fixed point: the ratio changes little with the inflation
-        relative = min(size / meshed, _SPHERE_SIZE_PER_RADIUS)
-        ratio = _meshed_unit_sphere_volume_ratio(round(relative, 6), verbose)
-        meshed = radius * min(ratio ** (-1 / 3), _LARGEST_INFLATION)
+        relative = min(size / meshed, SPHERE_SIZE_PER_RADIUS)
+        ratio = meshed_unit_sphere_volume_ratio(round(relative, 6), verbose)
+        meshed = radius * min(ratio ** (-1 / 3), LARGEST_INFLATION)
     return meshed
 
 
 @functools.lru_cache(maxsize=256)
-def _meshed_unit_sphere_volume_ratio(relative_size: float, verbose: bool) -> float:
+def meshed_unit_sphere_volume_ratio(relative_size: float, verbose: bool) -> float:
     with gmsh_session(verbose) as gmsh:
         gmsh.model.occ.addSphere(0.0, 0.0, 0.0, 1.0)
         gmsh.model.occ.synchronize()

@@ -18,26 +18,26 @@ from numpy.typing import NDArray
 from tissue.errors import MeshError
 from tissue.mesh.phantom.calibration import calibrate_size
 from tissue.mesh.phantom.gmsh_backend import (
-    _RawMesh,
+    RawMesh,
     extract_surface_mesh,
     extract_volume_mesh,
     gmsh_session,
 )
 from tissue.mesh.phantom.lesion_shapes import (
-    _SPHERE_SIZE_PER_RADIUS,
-    _add_convex_polyhedron,
-    _lesion_polyhedron,
-    _match_lesion_volumes,
+    SPHERE_SIZE_PER_RADIUS,
+    add_convex_polyhedron,
+    lesion_polyhedron,
+    match_lesion_volumes,
     volume_keeping_radius,
 )
 from tissue.mesh.phantom.spec import PhantomSpec
 
 # Collision-surface characteristic length [m] calibrated for the default PhantomSpec and
 # 1,000 triangles with this gmsh version; other specs and targets start from it and iterate.
-_CALIBRATED_COLLISION_SIZE_M = 0.0095
+CALIBRATED_COLLISION_SIZE_M = 0.0095
 
 
-def _add_dome(occ: Any, spec: PhantomSpec) -> int:
+def add_dome(occ: Any, spec: PhantomSpec) -> int:
     """The dome solid in the OCC kernel; returns its volume tag."""
     a, b, c = spec.semi_axes_m
     zc = spec.ellipsoid_centre_z_m
@@ -51,7 +51,7 @@ def _add_dome(occ: Any, spec: PhantomSpec) -> int:
     return int(result[0][1])
 
 
-def _mesh_phantom_volume(spec: PhantomSpec, shape: str, size: float, verbose: bool) -> _RawMesh:
+def mesh_phantom_volume(spec: PhantomSpec, shape: str, size: float, verbose: bool) -> RawMesh:
     centres = spec.lesion_centres_m()
     radii = spec.lesion_radii_m()
     meshed_radii = radii
@@ -59,18 +59,18 @@ def _mesh_phantom_volume(spec: PhantomSpec, shape: str, size: float, verbose: bo
         meshed_radii = np.array([volume_keeping_radius(r, size, verbose) for r in radii])
     with gmsh_session(verbose) as gmsh:
         occ = gmsh.model.occ
-        dome = _add_dome(occ, spec)
+        dome = add_dome(occ, spec)
         lesion_tags = []
         edge_lengths = []
         for centre, radius, meshed in zip(centres, radii, meshed_radii, strict=True):
             if shape == "sphere":
                 lesion_tags.append(occ.addSphere(*centre, meshed))
             else:
-                vertices = _lesion_polyhedron(centre, radius, shape)
+                vertices = lesion_polyhedron(centre, radius, shape)
                 edge_lengths.append(
                     float(np.min(np.linalg.norm(vertices[1:] - vertices[0], axis=1)))
                 )
-                lesion_tags.append(_add_convex_polyhedron(occ, vertices))
+                lesion_tags.append(add_convex_polyhedron(occ, vertices))
         volume_of_region = {0: dome}
         if lesion_tags:
             _, children = occ.fragment([(3, dome)], [(3, tag) for tag in lesion_tags])
@@ -92,7 +92,7 @@ def _mesh_phantom_volume(spec: PhantomSpec, shape: str, size: float, verbose: bo
                 continue
             points = gmsh.model.getBoundary([(3, volume)], recursive=True)
             if shape == "sphere":
-                lesion_size = min(size, _SPHERE_SIZE_PER_RADIUS * meshed_radii[k - 1])
+                lesion_size = min(size, SPHERE_SIZE_PER_RADIUS * meshed_radii[k - 1])
             else:
                 # Do not split the polyhedron's edges: it stays a handful of tets.
                 lesion_size = 1.001 * edge_lengths[k - 1] * math.sqrt(2.0)
@@ -101,7 +101,7 @@ def _mesh_phantom_volume(spec: PhantomSpec, shape: str, size: float, verbose: bo
         region_of_volume = {volume: k for k, volume in volume_of_region.items()}
         raw = extract_volume_mesh(gmsh, region_of_volume)
     if shape == "sphere":
-        _match_lesion_volumes(raw, centres, radii)
+        match_lesion_volumes(raw, centres, radii)
     return raw
 
 
@@ -116,12 +116,12 @@ def phantom_collision_surface(
         ``spec.collision_triangle_target``.
     """
     target = int(spec.collision_triangle_target)
-    initial = _CALIBRATED_COLLISION_SIZE_M * (spec.volume_m3 / PhantomSpec().volume_m3) ** (1 / 3)
+    initial = CALIBRATED_COLLISION_SIZE_M * (spec.volume_m3 / PhantomSpec().volume_m3) ** (1 / 3)
     initial *= math.sqrt(1000 / target)
 
     def mesh_at(size: float) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         with gmsh_session(verbose) as gmsh:
-            _add_dome(gmsh.model.occ, spec)
+            add_dome(gmsh.model.occ, spec)
             gmsh.model.occ.synchronize()
             gmsh.option.setNumber("Mesh.MeshSizeMax", size)
             gmsh.model.mesh.generate(2)
@@ -130,13 +130,13 @@ def phantom_collision_surface(
     (vertices, triangles), _, _ = calibrate_size(
         mesh_at, lambda r: r[1].shape[0], target, initial, "the collision surface", dimension=2
     )
-    return vertices, _orient_outward(spec, vertices, triangles)
+    return vertices, orient_outward(spec, vertices, triangles)
 
 
 #: The phantom's base, which the probe never reaches, is meshed this coarse [m] under a
 #: finer skin (:func:`phantom_skin_at`), grading from the skin's edge at the rim over
 #: :data:`_BASE_GRADING_M`.
-_BASE_EDGE_M = _CALIBRATED_COLLISION_SIZE_M
+_BASE_EDGE_M = CALIBRATED_COLLISION_SIZE_M
 _BASE_GRADING_M = 0.02
 
 
@@ -155,7 +155,7 @@ def phantom_skin_at(
     edge_m = float(edge_m)
     coarse = max(edge_m, _BASE_EDGE_M)
     with gmsh_session(verbose) as gmsh:
-        _add_dome(gmsh.model.occ, spec)
+        add_dome(gmsh.model.occ, spec)
         gmsh.model.occ.synchronize()
         surfaces = [tag for _, tag in gmsh.model.getEntities(2)]
         base = [tag for tag in surfaces if gmsh.model.getType(2, tag) == "Plane"]
@@ -182,10 +182,10 @@ def phantom_skin_at(
         gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
         gmsh.model.mesh.generate(2)
         vertices, triangles = extract_surface_mesh(gmsh)
-    return vertices, _orient_outward(spec, vertices, triangles)
+    return vertices, orient_outward(spec, vertices, triangles)
 
 
-def _orient_outward(
+def orient_outward(
     spec: PhantomSpec, vertices: NDArray[np.float64], triangles: NDArray[np.int64]
 ) -> NDArray[np.int64]:
     """Triangles wound so that normals point out: down on the base, away from the

@@ -11,7 +11,7 @@ from tissue.threads import parallel_kernel
 
 
 @numba.njit(cache=True)
-def _add_inertia_and_damping(
+def add_inertia_and_damping(
     y, inertia_target, x0, mass, h, rayleigh_mass, rayleigh_stiffness, damped, gradient
 ):  # pragma: no cover - compiled
     """Add inertia and Rayleigh damping to ``gradient`` (in place).
@@ -34,7 +34,7 @@ def _add_inertia_and_damping(
 
 
 @parallel_kernel
-def _scale_add_diagonal(
+def scale_add_diagonal(
     data, scale, other, other_scale, diagonal, diagonal_add
 ):  # pragma: no cover - compiled
     """data = scale data + other_scale other; then data[diagonal[i]] += diagonal_add[i]."""
@@ -46,7 +46,7 @@ def _scale_add_diagonal(
 
 
 @numba.njit(cache=True)
-def _row_products(indptr, indices, data, rows, x):  # pragma: no cover - compiled
+def row_products(indptr, indices, data, rows, x):  # pragma: no cover - compiled
     """(A x)[rows] for a CSR matrix."""
     out = np.zeros(rows.shape[0])
     for i in range(rows.shape[0]):
@@ -59,7 +59,7 @@ def _row_products(indptr, indices, data, rows, x):  # pragma: no cover - compile
 
 
 @numba.njit(cache=True)
-def _add_triplets(indptr, indices, data, rows, cols, values):  # pragma: no cover - compiled
+def add_triplets(indptr, indices, data, rows, cols, values):  # pragma: no cover - compiled
     """data[(rows[k], cols[k])] += values[k] in order, each entry found by bisection in its
     row's sorted columns; False (data partly updated) if one is outside the pattern.
 

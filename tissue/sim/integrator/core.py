@@ -9,7 +9,7 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from tissue.fem.elasticity import Elasticity, ElasticState
-from tissue.sim.integrator.assembly import _add_triplets
+from tissue.sim.integrator.assembly import add_triplets
 from tissue.sim.integrator.config import IntegratorConfig
 from tissue.sim.integrator.outcome import StepOutcome
 from tissue.sim.solvers import LinearSolver, SymmetricProduct
@@ -158,7 +158,7 @@ class IntegratorCore:
             added = evaluation.stiffness_values
             if scale != 1.0:
                 added = scale * added
-            if not _add_triplets(
+            if not add_triplets(
                 stiffness.indptr,
                 stiffness.indices,
                 stiffness.data,

@@ -9,7 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from tissue.sim.integrator.config import IntegratorConfig
-from tissue.sim.solvers import _dot
+from tissue.sim.solvers import dot
 
 # Armijo's sufficient-decrease constant: the customary 1e-4 (Nocedal & Wright, Numerical
 # Optimization, 2nd ed., section 3.1), not a tuning choice.
@@ -38,7 +38,7 @@ def line_search(
     met). A full step accepted with the energy still falling steeply at its end tries a longer
     one (``config.extrapolate_below``); the last evaluation is always at the returned point.
     """
-    slope = _dot(gradient, step)
+    slope = dot(gradient, step)
     alpha = 1.0
     while alpha >= config.min_step_fraction:
         trial = y + alpha * step
@@ -86,7 +86,7 @@ def _extrapolate(y, step, slope, accepted, energy, gradient, evaluate, config: I
     with ``accepted`` evaluated again if y' was tried (the contact terms report the
     last evaluation's forces).
     """
-    end_slope = _dot(gradient, step)
+    end_slope = dot(gradient, step)
     if not end_slope < config.extrapolate_below * slope:
         return None
     rise = end_slope - slope  # > 0 where the energy is convex along the step

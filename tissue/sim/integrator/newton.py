@@ -11,14 +11,14 @@ from numpy.typing import NDArray
 
 from tissue.sim.integrator.core import IntegratorCore
 from tissue.sim.integrator.line_search import extrapolated_positions, line_search
-from tissue.sim.integrator.outcome import StepOutcome, _merge, _rank
+from tissue.sim.integrator.outcome import StepOutcome, merge, rank
 from tissue.sim.integrator.potential import IncrementalPotential
 from tissue.sim.solvers import (
     ConstrainedSystem,
     LinearSolverKind,
     SolveReport,
-    _dot,
-    _free_square_norm,
+    dot,
+    free_square_norm,
 )
 from tissue.status import StepStatus
 
@@ -49,9 +49,9 @@ class NewtonSteps(IntegratorCore):
             left,
             frames,
         )
-        merged = _merge(first, second)
+        merged = merge(first, second)
         merged.subdivisions += 1
-        return merged if _rank(merged) <= _rank(outcome) else outcome
+        return merged if rank(merged) <= rank(outcome) else outcome
 
     def incremental_potential(
         self, x0, v0, h, dofs, targets, terms=(), frames=None
@@ -104,7 +104,7 @@ class NewtonSteps(IntegratorCore):
         chord: ConstrainedSystem | None = None
         while True:
             mismatch = float(np.max(np.abs(targets - y[dofs]))) if dofs.size else 0.0
-            relative = math.sqrt(_free_square_norm(gradient, ~free)) / max(scale, scale_floor)
+            relative = math.sqrt(free_square_norm(gradient, ~free)) / max(scale, scale_floor)
             history.append(relative)
             if not (np.isfinite(relative) and math.isfinite(energy)):
                 return self._failed(x0, v0, StepStatus.DIVERGED)
@@ -138,13 +138,13 @@ class NewtonSteps(IntegratorCore):
                     enough,
                     chord if chord_step else None,
                 )
-                descends = mismatch > 0.0 or _dot(gradient, step) < 0.0
+                descends = mismatch > 0.0 or dot(gradient, step) < 0.0
                 if chord_step and not descends:  # the chord misled: the Hessian here
                     total_linear += report.iterations
                     factorizations += int(report.factorized)
                     chord_step = False
                     step, report, system = direction(y, gradient, project, tolerance, enough)
-                    descends = mismatch > 0.0 or _dot(gradient, step) < 0.0
+                    descends = mismatch > 0.0 or dot(gradient, step) < 0.0
                 if cfg.project_psd and not project and (report.indefinite or not descends):
                     total_linear += report.iterations
                     factorizations += int(report.factorized)

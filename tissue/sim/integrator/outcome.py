@@ -47,11 +47,11 @@ class StepOutcome:
     newton_residuals: list[float] = field(default_factory=list)
 
 
-def _rank(outcome: StepOutcome) -> int:
+def rank(outcome: StepOutcome) -> int:
     return SEVERITY[outcome.status]
 
 
-def _merge(first: StepOutcome, second: StepOutcome) -> StepOutcome:
+def merge(first: StepOutcome, second: StepOutcome) -> StepOutcome:
     """Two consecutive substeps as one: the state of the second, the worse status, all work."""
     return StepOutcome(
         status=worst(first.status, second.status),

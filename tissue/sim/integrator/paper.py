@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 from tissue.errors import ConfigError
 from tissue.fem.elasticity import ElasticState
 from tissue.sim.frames import NodeFrames
-from tissue.sim.integrator.assembly import _row_products, _scale_add_diagonal
+from tissue.sim.integrator.assembly import row_products, scale_add_diagonal
 from tissue.sim.integrator.core import IntegratorCore
 from tissue.sim.integrator.outcome import StepOutcome
 from tissue.sim.solvers import ConstrainedSystem
@@ -93,7 +93,7 @@ class PaperSteps(IntegratorCore):
             rhs = h * (force - damping_force) - h * h * stiffness_v
             values[dofs] = (targets - x_local[dofs]) / h - v_local[dofs]
             # (h^2 + h r_K) K + (1 + h r_M) M, then h^2 K_terms, in place (K v is taken).
-            _scale_add_diagonal(
+            scale_add_diagonal(
                 elastic.data,
                 h * h + h * cfg.rayleigh_stiffness,
                 elastic.data,
@@ -122,7 +122,7 @@ class PaperSteps(IntegratorCore):
         dofs = linear.dofs
         # Reactions: what the constraints add so that the constrained rows balance.
         pointer, indices, data = linear.constrained_rows
-        rows = _row_products(pointer, indices, data, np.arange(dofs.size), solution)
+        rows = row_products(pointer, indices, data, np.arange(dofs.size), solution)
         reaction = np.zeros(x.size)
         if linear.frames is not None:
             solution = linear.frames.to_world(solution)

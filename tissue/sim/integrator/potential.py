@@ -12,8 +12,8 @@ from numpy.typing import NDArray
 
 from tissue.fem.elasticity import ElasticState
 from tissue.sim.frames import NodeFrames
-from tissue.sim.integrator.assembly import _add_inertia_and_damping, _scale_add_diagonal
-from tissue.sim.solvers import ConstrainedSystem, RankOneTerms, _dot
+from tissue.sim.integrator.assembly import add_inertia_and_damping, scale_add_diagonal
+from tissue.sim.solvers import ConstrainedSystem, RankOneTerms, dot
 
 if TYPE_CHECKING:
     from tissue.sim.integrator.core import IntegratorCore
@@ -134,16 +134,16 @@ class IncrementalPotential:
             energy += evaluation.energy_j
             internal = internal + evaluation.forces.reshape(-1)
         gradient = -internal
-        scale = math.sqrt(_dot(internal, internal))
+        scale = math.sqrt(dot(internal, internal))
         if self.external is not None:
-            energy -= _dot(self.external, y_flat)
+            energy -= dot(self.external, y_flat)
             gradient -= self.external
-            scale = max(scale, math.sqrt(_dot(self.external, self.external)))
+            scale = max(scale, math.sqrt(dot(self.external, self.external)))
         if not self.quasi:
             damped = self.damping_product
             if self._damping_product is not None:
                 self._damping_product(y_flat - self.x0_flat, damped)
-            inertia_energy, inertial_square = _add_inertia_and_damping(
+            inertia_energy, inertial_square = add_inertia_and_damping(
                 y_flat,
                 self.inertia_target,
                 self.x0_flat,
@@ -185,7 +185,7 @@ class IncrementalPotential:
         matrix = integrator._stiffness_with_terms(state, y3, self.terms)
         if not self.quasi:
             damping = self.damping
-            _scale_add_diagonal(
+            scale_add_diagonal(
                 matrix.data,
                 1.0,
                 damping.data if damping is not None else matrix.data,

@@ -43,10 +43,10 @@ Modules, one concept each:
 
 from __future__ import annotations
 
-from tissue.sim.solvers.constrained_correction import _ConstrainedSince as _ConstrainedSince
+from tissue.sim.solvers.constrained_correction import ConstrainedSince as ConstrainedSince
 from tissue.sim.solvers.constrained_system import ConstrainedSystem, RankOneTerms
 from tissue.sim.solvers.direct_factorization import DirectFactorizer, Factorization
-from tissue.sim.solvers.jacobi_cg import _jacobi_pcg as _jacobi_pcg
+from tissue.sim.solvers.jacobi_cg import jacobi_pcg as jacobi_pcg
 from tissue.sim.solvers.limits import (
     MAX_CONSTRAINED_SINCE,
     MAX_RANK_ONE_SINCE,
@@ -55,15 +55,15 @@ from tissue.sim.solvers.limits import (
     SERIAL_STEP_UNKNOWNS,
 )
 from tissue.sim.solvers.linear_solver import LinearSolver, SolveReport
-from tissue.sim.solvers.node_blocks import _NO_BLOCKS as _NO_BLOCKS
+from tissue.sim.solvers.node_blocks import NO_BLOCKS as NO_BLOCKS
+from tissue.sim.solvers.node_blocks import NodeBlocks as NodeBlocks
 from tissue.sim.solvers.node_blocks import SymmetricProduct
-from tissue.sim.solvers.node_blocks import _NodeBlocks as _NodeBlocks
-from tissue.sim.solvers.node_blocks import _product as _product
-from tissue.sim.solvers.rank_one_correction import _RankOneSince as _RankOneSince
+from tissue.sim.solvers.node_blocks import node_block_product as node_block_product
+from tissue.sim.solvers.rank_one_correction import RankOneSince as RankOneSince
 from tissue.sim.solvers.settings import DirectBackend, LinearSolverConfig, LinearSolverKind
-from tissue.sim.solvers.vector_kernels import _dot as _dot
-from tissue.sim.solvers.vector_kernels import _free_square_norm as _free_square_norm
-from tissue.sim.solvers.vector_kernels import _subtract_columns as _subtract_columns
+from tissue.sim.solvers.vector_kernels import dot as dot
+from tissue.sim.solvers.vector_kernels import free_square_norm as free_square_norm
+from tissue.sim.solvers.vector_kernels import subtract_columns as subtract_columns
 from tissue.sim.solvers.vector_kernels import vector_norm
 
 __all__ = [

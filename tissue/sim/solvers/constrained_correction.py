@@ -3,7 +3,7 @@
 ``reuse`` keeps a factorisation F across steps as CG's preconditioner. When dofs become
 constrained after F was computed (prescribed displacement's online node set growing under
 the probe), F^-1 is a worse preconditioner by a term of rank |D|, which costs CG about an
-iteration per dof; :class:`_ConstrainedSince` removes that term exactly, from |D| columns
+iteration per dof; :class:`ConstrainedSince` removes that term exactly, from |D| columns
 of F^-1 solved once and kept while F is. The same form handles node frames that have turned
 since F (prescribed nodes sliding on the probe). Up to
 :data:`~tissue.sim.solvers.limits.MAX_CONSTRAINED_SINCE` dofs; beyond, ``reuse``
@@ -24,10 +24,10 @@ from numpy.typing import NDArray
 import tissue.sim.solvers as solvers
 from tissue.sim.frames import FrameChange
 from tissue.sim.solvers.direct_factorization import Factorization
-from tissue.sim.solvers.vector_kernels import _subtract_columns
+from tissue.sim.solvers.vector_kernels import subtract_columns
 
 
-class _ConstrainedSince:
+class ConstrainedSince:
     """A kept factorisation F corrected for dofs D constrained since it was computed.
 
     F factorised a matrix in which D were free; the system now holds them fixed (identity
@@ -134,10 +134,10 @@ class _ConstrainedSince:
             scaled = (combination * weights[:, None]).ravel()
             used = scaled != 0.0  # an unturned dof has one column; its row holds two zeros
             response = np.zeros_like(z)
-            _subtract_columns(response, self.columns, slots.ravel()[used], scaled[used])
+            subtract_columns(response, self.columns, slots.ravel()[used], scaled[used])
             z += change.apply(response)
         else:
-            _subtract_columns(z, self.columns, self._active_slots, weights)
+            subtract_columns(z, self.columns, self._active_slots, weights)
         return z
 
     def _form_correction(self, change: FrameChange | None) -> None:

@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 import tissue.sim.solvers as solvers
 from tissue.mesh import node_dofs
 from tissue.sim.frames import NodeFrames, find_column
-from tissue.sim.solvers.vector_kernels import _dot, _free_square_norm, _spmv
+from tissue.sim.solvers.vector_kernels import dot, free_square_norm, spmv
 from tissue.threads import parallel_kernel
 
 
@@ -79,7 +79,7 @@ class RankOneTerms:
     """Part of a system matrix written as sum_i s_i v_i v_i^T, terms that come and go between
     solves (penalty springs: one per contact point), so that a kept factorisation can be
     corrected for them in low rank
-    (:class:`~tissue.sim.solvers.rank_one_correction._RankOneSince`).
+    (:class:`~tissue.sim.solvers.rank_one_correction.RankOneSince`).
 
     Attributes:
         keys: what each term stands for, unique (a contact point's index), shape (k,).
@@ -157,7 +157,7 @@ class ConstrainedSystem:
         the dofs still eliminated in it: what a kept factorisation factorises, so that the
         later systems' turned frames find those axes in it (their constraints are then
         corrected for,
-        :class:`~tissue.sim.solvers.constrained_correction._ConstrainedSince`). The system's
+        :class:`~tissue.sim.solvers.constrained_correction.ConstrainedSince`). The system's
         own when it has no frames, or more framed constraints than such a correction takes
         (:data:`~tissue.sim.solvers.limits.MAX_CONSTRAINED_SINCE`)."""
         if self._framed_entries is None:
@@ -210,11 +210,11 @@ class ConstrainedSystem:
     def residual_norm(self, x: NDArray[np.float64]) -> float:
         """||b - A x|| / ||b|| of the eliminated system."""
         ax = np.empty_like(x)
-        _spmv(self.matrix.indptr, self.matrix.indices, self.matrix.data, x, ax)
+        spmv(self.matrix.indptr, self.matrix.indices, self.matrix.data, x, ax)
         difference = self.rhs - ax
-        denominator = math.sqrt(_dot(self.rhs, self.rhs)) or 1.0
-        return math.sqrt(_dot(difference, difference)) / denominator
+        denominator = math.sqrt(dot(self.rhs, self.rhs)) or 1.0
+        return math.sqrt(dot(difference, difference)) / denominator
 
     def free_rhs_norm(self) -> float:
         """||b|| over the free dofs."""
-        return math.sqrt(_free_square_norm(self.rhs, self.constrained))
+        return math.sqrt(free_square_norm(self.rhs, self.constrained))

@@ -24,8 +24,8 @@ from numpy.typing import NDArray
 
 from tissue.sim.solvers.constrained_system import ConstrainedSystem
 from tissue.sim.solvers.direct_factorization import Factorization
-from tissue.sim.solvers.node_blocks import _NO_BLOCKS, _NodeBlocks, _product
-from tissue.sim.solvers.vector_kernels import _free_square_norm
+from tissue.sim.solvers.node_blocks import NO_BLOCKS, NodeBlocks, node_block_product
+from tissue.sim.solvers.vector_kernels import free_square_norm
 
 
 @numba.njit(cache=True)
@@ -87,13 +87,13 @@ def _cg_update(x, r, r_old, p, ap, alpha, constrained):  # pragma: no cover - co
     return total
 
 
-def _factor_pcg(
+def factor_pcg(
     system: ConstrainedSystem,
     preconditioner: Factorization,
     x: NDArray[np.float64],
     max_iterations: int,
     tolerance: float,
-    filled_blocks: Callable[[], _NodeBlocks | None] = lambda: None,
+    filled_blocks: Callable[[], NodeBlocks | None] = lambda: None,
 ) -> tuple[int, float]:
     """CG preconditioned by an (older) factorisation; constrained dofs stay fixed.
 
@@ -117,9 +117,9 @@ def _factor_pcg(
     """
     matrix, constrained = system.matrix, system.constrained
     indptr, indices, data = matrix.indptr, matrix.indices, matrix.data
-    b_square = _free_square_norm(system.rhs, constrained)
+    b_square = free_square_norm(system.rhs, constrained)
     b_norm = math.sqrt(b_square) or 1.0
-    upper_ptr, upper_cols, upper, bounds, partial = _NO_BLOCKS
+    upper_ptr, upper_cols, upper, bounds, partial = NO_BLOCKS
     ap = np.empty_like(x)
     if _free_entries_zero(x, constrained):
         # x = 0 at the unknowns and the known columns eliminated: r = b there, without a
@@ -130,7 +130,9 @@ def _factor_pcg(
         blocks = filled_blocks()
         if blocks is not None:
             upper_ptr, upper_cols, upper, bounds, partial = blocks.arguments()
-        _product(indptr, indices, data, upper_ptr, upper_cols, upper, bounds, partial, x, ap)
+        node_block_product(
+            indptr, indices, data, upper_ptr, upper_cols, upper, bounds, partial, x, ap
+        )
         r = np.empty_like(x)
         r_square = _free_difference(system.rhs, ap, constrained, r)
     residual = math.sqrt(r_square) / b_norm
@@ -145,11 +147,13 @@ def _factor_pcg(
             break
         _update_direction(p, z, 0.0 if iterations == 0 else (rz_new - rz_cross) / rz)
         rz = rz_new
-        if iterations == 0 and upper_ptr is _NO_BLOCKS[0]:
+        if iterations == 0 and upper_ptr is NO_BLOCKS[0]:
             blocks = filled_blocks()
             if blocks is not None:
                 upper_ptr, upper_cols, upper, bounds, partial = blocks.arguments()
-        pap = _product(indptr, indices, data, upper_ptr, upper_cols, upper, bounds, partial, p, ap)
+        pap = node_block_product(
+            indptr, indices, data, upper_ptr, upper_cols, upper, bounds, partial, p, ap
+        )
         if pap <= 0.0 or not math.isfinite(pap):
             break
         r_square = _cg_update(x, r, r_old, p, ap, rz / pap, constrained)

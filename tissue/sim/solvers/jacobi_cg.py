@@ -1,7 +1,7 @@
 """``cg``: conjugate gradient with a Jacobi (diagonal) preconditioner and an iteration cap.
 
 The paper's solver (SOFA's ``CGLinearSolver``, 25 iterations). The whole loop is compiled
-(:func:`_jacobi_pcg`), on a system whose constrained rows and columns are identity's (see
+(:func:`jacobi_pcg`), on a system whose constrained rows and columns are identity's (see
 :class:`~tissue.sim.solvers.constrained_system.ConstrainedSystem`), so no mask is needed:
 identity rows keep the known values where the initial guess put them. Limitation: on fine
 meshes 25 iterations are far from converged; the caller reports how far (the relative
@@ -16,14 +16,14 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from tissue.sim.solvers.node_blocks import _product
+from tissue.sim.solvers.node_blocks import node_block_product
 from tissue.threads import parallel_kernel
 
 
 @parallel_kernel
-def _block_inverse_diagonal(upper_ptr, upper_cols, upper, out):  # pragma: no cover - compiled
+def block_inverse_diagonal(upper_ptr, upper_cols, upper, out):  # pragma: no cover - compiled
     """1 / A_ii where positive, else 1, from the diagonal blocks of node blocks; returns
-    False if some node row has no diagonal block (then use :func:`_inverse_diagonal`)."""
+    False if some node row has no diagonal block (then use :func:`inverse_diagonal`)."""
     missing = 0
     for b in numba.prange(upper_ptr.shape[0] - 1):
         q = upper_ptr[b]
@@ -37,7 +37,7 @@ def _block_inverse_diagonal(upper_ptr, upper_cols, upper, out):  # pragma: no co
 
 
 @parallel_kernel
-def _inverse_diagonal(indptr, indices, data, out):  # pragma: no cover - compiled
+def inverse_diagonal(indptr, indices, data, out):  # pragma: no cover - compiled
     """1 / A_ii where positive, else 1 (Jacobi preconditioner; sorted CSR rows)."""
     for row in numba.prange(indptr.shape[0] - 1):
         value = 0.0
@@ -86,7 +86,7 @@ def _jacobi_direction(p, r, inv_diag, beta):  # pragma: no cover - compiled
 
 
 @parallel_kernel(prange=False)
-def _jacobi_pcg(
+def jacobi_pcg(
     indptr,
     indices,
     data,
@@ -105,7 +105,7 @@ def _jacobi_pcg(
 
     Returns (iterations, relative residual). x (n,) holds the initial guess and the result;
     b (n,) is the right-hand side. The products use the upper node blocks where given (see
-    :func:`~tissue.sim.solvers.node_blocks._product`). One iteration is three parallel
+    :func:`~tissue.sim.solvers.node_blocks.node_block_product`). One iteration is three parallel
     passes: A p with p . A p, the updates of x and r with their dot products, and the new
     direction (z = r / diag is never stored).
     """
@@ -113,7 +113,7 @@ def _jacobi_pcg(
     r = np.empty(n)
     p = np.empty(n)
     ap = np.empty(n)
-    _product(indptr, indices, data, upper_ptr, upper_cols, upper, bounds, partial, x, ap)
+    node_block_product(indptr, indices, data, upper_ptr, upper_cols, upper, bounds, partial, x, ap)
     b_square, r_square, rz = _jacobi_start(b, ap, inv_diag, r, p)
     b_norm = np.sqrt(b_square)
     if b_norm == 0.0:
@@ -121,7 +121,9 @@ def _jacobi_pcg(
     residual = np.sqrt(r_square) / b_norm
     iterations = 0
     while iterations < max_iterations and residual > tolerance:
-        pap = _product(indptr, indices, data, upper_ptr, upper_cols, upper, bounds, partial, p, ap)
+        pap = node_block_product(
+            indptr, indices, data, upper_ptr, upper_cols, upper, bounds, partial, p, ap
+        )
         if pap <= 0.0 or not np.isfinite(pap):
             break  # indefinite direction or breakdown: stop with what we have
         alpha = rz / pap

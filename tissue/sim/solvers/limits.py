@@ -10,13 +10,13 @@ and column-growth paths with small systems. Setting them on this module does not
 from __future__ import annotations
 
 #: A kept factorisation is corrected for at most this many dofs constrained since it was
-#: computed (:class:`~tissue.sim.solvers.constrained_correction._ConstrainedSince`); beyond,
+#: computed (:class:`~tissue.sim.solvers.constrained_correction.ConstrainedSince`); beyond,
 #: it is refactorised. It holds one column of F^-1 per dof, n doubles each: 192 columns of
 #: 95k unknowns are 146 MB.
 MAX_CONSTRAINED_SINCE = 192
 
 #: A kept factorisation is corrected for at most this many rank-one terms changed since it
-#: was computed (:class:`~tissue.sim.solvers.rank_one_correction._RankOneSince`; one column
+#: was computed (:class:`~tissue.sim.solvers.rank_one_correction.RankOneSince`; one column
 #: F^-1 v held per term, as for constrained dofs); beyond, it is refactorised.
 MAX_RANK_ONE_SINCE = 192
 

@@ -34,13 +34,13 @@ from numpy.typing import NDArray
 import tissue.sim.solvers as solvers
 from tissue.mesh import node_dofs
 from tissue.sim.frames import FrameChange, NodeFrames
-from tissue.sim.solvers.constrained_correction import _ConstrainedSince
+from tissue.sim.solvers.constrained_correction import ConstrainedSince
 from tissue.sim.solvers.constrained_system import ConstrainedSystem, RankOneTerms
 from tissue.sim.solvers.direct_factorization import DirectFactorizer, Factorization
-from tissue.sim.solvers.factor_cg import _factor_pcg
-from tissue.sim.solvers.jacobi_cg import _block_inverse_diagonal, _inverse_diagonal, _jacobi_pcg
-from tissue.sim.solvers.node_blocks import _NO_BLOCKS, _matrix_product, _NodeBlocks
-from tissue.sim.solvers.rank_one_correction import _RankOneSince
+from tissue.sim.solvers.factor_cg import factor_pcg
+from tissue.sim.solvers.jacobi_cg import block_inverse_diagonal, inverse_diagonal, jacobi_pcg
+from tissue.sim.solvers.node_blocks import NO_BLOCKS, NodeBlocks, matrix_product
+from tissue.sim.solvers.rank_one_correction import RankOneSince
 from tissue.sim.solvers.settings import LinearSolverConfig, LinearSolverKind
 from tissue.threads import one_thread_below
 
@@ -86,15 +86,15 @@ class LinearSolver:
         self._factorizer: DirectFactorizer | None = None
         self._reuse: Factorization | None = None
         # Dofs constrained when the kept factorisation was computed, and its corrections for
-        # dofs constrained since (see _ConstrainedSince).
+        # dofs constrained since (see ConstrainedSince).
         self._reuse_constrained: NDArray[np.bool_] | None = None
-        self._since: _ConstrainedSince | None = None
+        self._since: ConstrainedSince | None = None
         # The node frames the kept factorisation's matrix was written in.
         self._reuse_frames: NodeFrames | None = None
         # The rank-one terms of the kept factorisation's matrix (None: unknown, so never
-        # corrected), and its corrections for the terms changed since (see _RankOneSince).
+        # corrected), and its corrections for the terms changed since (see RankOneSince).
         self._reuse_rank_one: RankOneTerms | None = None
-        self._rank_one_since: _RankOneSince | None = None
+        self._rank_one_since: RankOneSince | None = None
         self.last_factorization: Factorization | None = None
         # Kept factorisations in single precision (see DirectFactorizer.factorize_preconditioner);
         # False keeps them in double (twice the memory and time per triangular solve).
@@ -102,9 +102,9 @@ class LinearSolver:
         # Whether the last refresh_kept_factorization found its matrix not SPD.
         self.kept_indefinite = False
         # (indices, indptr) of the last pattern CG saw, and its node blocks (or None).
-        self._blocks: tuple[NDArray, NDArray, _NodeBlocks | None] | None = None
+        self._blocks: tuple[NDArray, NDArray, NodeBlocks | None] | None = None
         # (those blocks, the values token of the system they were last filled from).
-        self._filled_for: tuple[_NodeBlocks, object] | None = None
+        self._filled_for: tuple[NodeBlocks, object] | None = None
         # Amortised refresh of the kept factorisation (``reuse``, see _solve_reuse): the CG
         # iterations beyond the first of each solve since it was computed, plus what its
         # rank-one corrections' columns cost (in iterations).
@@ -168,7 +168,7 @@ class LinearSolver:
         if added.size > solvers.MAX_CONSTRAINED_SINCE:
             return None
         if self._since is None:
-            self._since = _ConstrainedSince(self._reuse, constrained.size)
+            self._since = ConstrainedSince(self._reuse, constrained.size)
         return self._since.for_dofs(added, change)
 
     def _corrected_for_rank_one(
@@ -180,7 +180,7 @@ class LinearSolver:
         if system.rank_one is None or self._reuse_rank_one is None:
             return kept
         if self._rank_one_since is None:
-            self._rank_one_since = _RankOneSince(kept, system.rhs.size, self._reuse_rank_one)
+            self._rank_one_since = RankOneSince(kept, system.rhs.size, self._reuse_rank_one)
         return self._rank_one_since.for_terms(system.rank_one, system.constrained)
 
     @property
@@ -260,7 +260,7 @@ class LinearSolver:
         self._rank_one_since = None
         return factorization, indefinite
 
-    def _node_blocks(self, matrix: sp.csr_matrix) -> _NodeBlocks | None:
+    def _node_blocks(self, matrix: sp.csr_matrix) -> NodeBlocks | None:
         """Node blocks of ``matrix``'s pattern, found once per pattern (the same arrays)."""
         cached = self._blocks
         if (
@@ -268,7 +268,7 @@ class LinearSolver:
             or not _same_buffer(cached[0], matrix.indices)
             or not _same_buffer(cached[1], matrix.indptr)
         ):
-            cached = (matrix.indices, matrix.indptr, _NodeBlocks.of(matrix))
+            cached = (matrix.indices, matrix.indptr, NodeBlocks.of(matrix))
             self._blocks = cached
         return cached[2]
 
@@ -282,9 +282,9 @@ class LinearSolver:
         if blocks is not None:
             blocks.fill(matrix.data)
             self._filled_for = None  # holding this matrix's values, not a system's
-        _matrix_product(matrix, blocks, x, out)
+        matrix_product(matrix, blocks, x, out)
 
-    def _filled_blocks(self, system: ConstrainedSystem) -> _NodeBlocks | None:
+    def _filled_blocks(self, system: ConstrainedSystem) -> NodeBlocks | None:
         """The node blocks of ``system``'s matrix holding its values (filled once for the
         systems sharing its values token: a robust LM step solves three with one matrix,
         and filling them for each would cost more than the products they serve), or None
@@ -303,16 +303,16 @@ class LinearSolver:
         matrix = system.matrix
         inv_diag = np.empty(matrix.shape[0])
         blocks = self._filled_blocks(system)
-        if blocks is None or not _block_inverse_diagonal(
+        if blocks is None or not block_inverse_diagonal(
             blocks.upper_ptr, blocks.upper_cols, blocks.upper, inv_diag
         ):
-            _inverse_diagonal(matrix.indptr, matrix.indices, matrix.data, inv_diag)
+            inverse_diagonal(matrix.indptr, matrix.indices, matrix.data, inv_diag)
         with _threads_for(x.shape[0]):
-            iterations, residual = _jacobi_pcg(
+            iterations, residual = jacobi_pcg(
                 matrix.indptr,
                 matrix.indices,
                 matrix.data,
-                *(blocks.arguments() if blocks is not None else _NO_BLOCKS),
+                *(blocks.arguments() if blocks is not None else NO_BLOCKS),
                 system.rhs,
                 x,
                 inv_diag,
@@ -350,7 +350,7 @@ class LinearSolver:
             solved_before = corrected.solved_columns if corrected is not None else 0
             x = _start(system, initial_guess)
             with _threads_for(x.shape[0]):
-                iterations, residual = _factor_pcg(
+                iterations, residual = factor_pcg(
                     system, kept, x, cap, tolerance, lambda: self._filled_blocks(system)
                 )
             self._excess_iterations += max(iterations - 1, 0)
@@ -368,7 +368,7 @@ class LinearSolver:
         if preconditioner is not None:
             x = _start(system, initial_guess)
             with _threads_for(x.shape[0]):
-                iterations, residual = _factor_pcg(
+                iterations, residual = factor_pcg(
                     system, preconditioner, x, cap, tolerance, lambda: self._filled_blocks(system)
                 )
             if residual <= tolerance:

@@ -7,9 +7,9 @@ block serving both triangles: half the memory traffic of a CSR product, in doubl
 On large meshes the upper blocks also stay in the last-level cache where the whole CSR matrix
 does not. A matrix that is not node-blocked (a test's Laplacian) is multiplied as CSR.
 
-:func:`_product` does either, chosen by its arguments (:data:`_NO_BLOCKS` for CSR): CG's
+:func:`node_block_product` does either, chosen by its arguments (:data:`NO_BLOCKS` for CSR): CG's
 loops (:mod:`~tissue.sim.solvers.jacobi_cg`, :mod:`~tissue.sim.solvers.factor_cg`) call it
-for every product. :class:`_NodeBlocks` holds the blocks of one pattern; :class:`SymmetricProduct`
+for every product. :class:`NodeBlocks` holds the blocks of one pattern; :class:`SymmetricProduct`
 is a product with one fixed matrix (the integrator's rest stiffness, for its damping).
 
 Bits: below :data:`~tissue.sim.solvers.limits.SERIAL_CG_UNKNOWNS` unknowns (where CG runs on
@@ -95,13 +95,13 @@ def _fill_upper_blocks(
 
 
 @parallel_kernel
-def _product(
+def node_block_product(
     indptr, indices, data, upper_ptr, upper_cols, upper, bounds, partial, x, out
 ):  # pragma: no cover - compiled
     """out = A x; returns x . out.
 
     With node blocks (``upper_ptr`` longer than 1) only the upper 3x3 blocks are read (see
-    :class:`_NodeBlocks`): block (b, c) adds B x_c to row b and, off the diagonal, B^T x_b to
+    :class:`NodeBlocks`): block (b, c) adds B x_c to row b and, off the diagonal, B^T x_b to
     row c, each of the ``partial`` rows summing its own range of node rows. Else plain CSR.
     With one part, or as CSR, the result is the same bits on any number of threads (x . A x
     is then summed serially, in row order); with several, the parts' split sets the bits.
@@ -163,7 +163,7 @@ def _product(
     return total
 
 
-class _NodeBlocks:
+class NodeBlocks:
     """The upper 3x3 blocks of a symmetric node-blocked matrix, for the products of CG.
 
     A product then reads half the matrix (each off-diagonal block serves both triangles; see
@@ -204,7 +204,7 @@ class _NodeBlocks:
         self.partial = np.empty((parts, 3 * node_count))
 
     @classmethod
-    def of(cls, matrix: sp.csr_matrix) -> _NodeBlocks | None:
+    def of(cls, matrix: sp.csr_matrix) -> NodeBlocks | None:
         """The blocks of ``matrix``'s pattern, or None if it is not node-blocked."""
         if matrix.indices.shape[0] % 9 != 0:
             return None
@@ -220,7 +220,7 @@ class _NodeBlocks:
         )
 
     def arguments(self) -> tuple[NDArray, NDArray, NDArray, NDArray, NDArray]:
-        """The block arguments of :func:`_product` (as :data:`_NO_BLOCKS` for CSR)."""
+        """The block arguments of :func:`node_block_product` (as :data:`NO_BLOCKS` for CSR)."""
         return self.upper_ptr, self.upper_cols, self.upper, self.bounds, self.partial
 
 
@@ -235,27 +235,27 @@ class SymmetricProduct:
 
     def __init__(self, matrix: sp.csr_matrix) -> None:
         self.matrix = matrix
-        self.blocks = _NodeBlocks.of(matrix)
+        self.blocks = NodeBlocks.of(matrix)
         if self.blocks is not None:
             self.blocks.fill(matrix.data)
 
     def __call__(self, x: NDArray[np.float64], out: NDArray[np.float64]) -> float:
         """Write A x to ``out`` (n,); returns x . A x."""
-        return _matrix_product(self.matrix, self.blocks, x, out)
+        return matrix_product(self.matrix, self.blocks, x, out)
 
 
-def _matrix_product(
+def matrix_product(
     matrix: sp.csr_matrix,
-    blocks: _NodeBlocks | None,
+    blocks: NodeBlocks | None,
     x: NDArray[np.float64],
     out: NDArray[np.float64],
 ) -> float:
     """out = A x through ``blocks`` (holding A's values) where given, else as CSR; x . A x."""
     upper_ptr, upper_cols, upper, bounds, partial = (
-        blocks.arguments() if blocks is not None else _NO_BLOCKS
+        blocks.arguments() if blocks is not None else NO_BLOCKS
     )
     return float(
-        _product(
+        node_block_product(
             matrix.indptr,
             matrix.indices,
             matrix.data,
@@ -270,8 +270,8 @@ def _matrix_product(
     )
 
 
-# The block arguments of _product when there are no blocks (plain CSR products).
-_NO_BLOCKS = (
+# The block arguments of node_block_product when there are no blocks (plain CSR products).
+NO_BLOCKS = (
     np.zeros(1, dtype=np.int64),
     np.zeros(0, dtype=np.int32),
     np.zeros(0),

@@ -4,7 +4,7 @@ since it was computed.
 The robust penalty method's tangent holds one stiff spring term s v v^T per contact point
 (:class:`~tissue.sim.solvers.constrained_system.RankOneTerms`). As points enter and leave
 contact between steps, ``reuse``'s kept factorisation F falls behind by a few such terms,
-each costing CG about an iteration; :class:`_RankOneSince` corrects F for them exactly, from a
+each costing CG about an iteration; :class:`RankOneSince` corrects F for them exactly, from a
 column F^-1 v per changed term solved once and kept while F is. Up to
 :data:`~tissue.sim.solvers.limits.MAX_RANK_ONE_SINCE` columns; beyond, ``reuse``
 refactorises.
@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 import tissue.sim.solvers as solvers
 from tissue.sim.solvers.constrained_system import RankOneTerms
 from tissue.sim.solvers.direct_factorization import Factorization
-from tissue.sim.solvers.vector_kernels import _subtract_columns
+from tissue.sim.solvers.vector_kernels import subtract_columns
 
 # A term whose vector has turned by less than this (cos 2 degrees) from the one its column was
 # solved for keeps that column: the correction is then of a nearby matrix, which only a
@@ -33,7 +33,7 @@ from tissue.sim.solvers.vector_kernels import _subtract_columns
 _RANK_ONE_TURN_COS = float(np.cos(np.radians(2.0)))
 
 
-class _RankOneSince:
+class RankOneSince:
     """A kept factorisation F corrected for rank-one terms changed since it was computed.
 
     F factorised A_F, which held the terms T_F = sum s_i v_i v_i^T; the system now holds T
@@ -133,7 +133,7 @@ class _RankOneSince:
         """The corrected preconditioner applied to ``rhs`` (n,)."""
         if self._pending:
             # The new columns and this right-hand side in one multi-RHS call (Pardiso reads
-            # the factor once for all of them, as in _ConstrainedSince.solve).
+            # the factor once for all of them, as in ConstrainedSince.solve).
             new, self._pending = self._pending, []
             block = np.zeros((self.size, len(new) + 1), order="F")
             for index, (_, dofs, vector) in enumerate(new):
@@ -155,7 +155,7 @@ class _RankOneSince:
             return z
         projected = np.einsum("im,im->i", self._vectors, z[self._dofs])
         weights = scipy.linalg.lu_solve(self._capacitance, projected, check_finite=False)
-        _subtract_columns(z, self.columns, self._slots, weights)
+        subtract_columns(z, self.columns, self._slots, weights)
         return z
 
     def _assemble_correction(self) -> None:

@@ -22,7 +22,7 @@ from tissue.threads import parallel_kernel
 
 
 @parallel_kernel
-def _spmv(indptr, indices, data, x, out):  # pragma: no cover - compiled
+def spmv(indptr, indices, data, x, out):  # pragma: no cover - compiled
     """out = A x for a CSR matrix A (n, n) given by its three arrays."""
     for row in numba.prange(indptr.shape[0] - 1):
         acc = 0.0
@@ -32,7 +32,7 @@ def _spmv(indptr, indices, data, x, out):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def _dot(a, b):  # pragma: no cover - compiled
+def dot(a, b):  # pragma: no cover - compiled
     """a . b, summed in index order."""
     acc = 0.0
     for i in range(a.shape[0]):
@@ -43,11 +43,11 @@ def _dot(a, b):  # pragma: no cover - compiled
 def vector_norm(x: NDArray[np.float64]) -> float:
     """Euclidean norm of a 1-D float64 array, in a serial loop (not BLAS: see the module
     docstring)."""
-    return math.sqrt(_dot(x, x))
+    return math.sqrt(dot(x, x))
 
 
 @numba.njit(cache=True)
-def _free_square_norm(x, constrained):  # pragma: no cover - compiled
+def free_square_norm(x, constrained):  # pragma: no cover - compiled
     """Sum of x_i^2 over the free (not constrained) entries."""
     acc = 0.0
     for i in range(x.shape[0]):
@@ -57,7 +57,7 @@ def _free_square_norm(x, constrained):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def _subtract_columns(z, columns, slots, weights):  # pragma: no cover - compiled
+def subtract_columns(z, columns, slots, weights):  # pragma: no cover - compiled
     """z -= columns[:, slots] @ weights, column by column (contiguous in a column-major
     array), in one serial loop: a BLAS product of the tall matrix would wake OpenBLAS's
     threads, and gathering the columns would copy them. Shapes: z (n,), columns (n, m)

@@ -1,5 +1,0 @@
-"""Training with stable-baselines3: ``probegym train`` and loading what it saved."""
-
-from agents.train.artifacts import TrainedPolicy, TrainedPolicyError, load_policy
-
-__all__ = ["TrainedPolicy", "TrainedPolicyError", "load_policy"]
