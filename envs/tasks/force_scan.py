@@ -134,7 +134,7 @@ class ForceScanEnv(ProbeEnv):
 
     The policy is told the path and the skin's orientation under the probe (the ``path``
     observation); how it keeps the face normal is its business
-    (:class:`agents.policies.ForceScanPolicy` turns its pressing axis toward that normal).
+    (:class:`agents.learning.policies.ForceScanPolicy` turns its pressing axis toward that normal).
 
     ## Action space
 

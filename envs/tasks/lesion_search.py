@@ -122,7 +122,7 @@ class LesionSearchEnv(ProbeEnv):
     force and its own pose. It is not told where the lesion is or on which side; it is
     told, here, that the start is displaced along the probe's x axis (the scan line), so
     sweeping along x, one way and then back, finds it
-    (:class:`agents.policies.LesionSearchPolicy` does; the frictionless tissue is dragged
+    (:class:`agents.learning.policies.LesionSearchPolicy` does; the frictionless tissue is dragged
     along by a deep press, so it sweeps lightly and keeps the face on the skin's slope).
 
     ## Action space
