@@ -31,7 +31,6 @@ from typing import Any
 
 from tissue.choices import Choice
 from tissue.contact import CONTACT_MODELS, contact_method, make_contact_model
-from tissue.contact.base import ContactResult
 from tissue.contact.fe_model import model_surface
 from tissue.contact.lagrange import LagrangeParams
 from tissue.contact.penalty import PenaltyParams, default_stiffness_n_per_m
@@ -102,7 +101,6 @@ __all__ = [
     "BoxProbe",
     "Choice",
     "ConstrainedSystem",
-    "ContactResult",
     "DirectFactorizer",
     "LagrangeParams",
     "LinearSolver",

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from tissue.contact import make_contact_model
-from tissue.contact.base import ContactModel, ContactResult
+from tissue.contact.base import ContactModel
 from tissue.contact.placement import RestSkin, first_contact_pose, radial_roll_rad
 from tissue.contact.registry import contact_class
 from tissue.contact.surface_points import SurfacePoints
@@ -35,12 +35,7 @@ from tissue.probe import ProbeShape, quat_to_matrix
 from tissue.sim.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.spec import ResolvedTissue, TissueSpec, resolve_spec
 from tissue.status import StepStatus
-from tissue.step_result import (
-    TissueStep,
-    asleep_diagnostics,
-    frozen,
-    typed_diagnostics,
-)
+from tissue.step_result import TissueStep, asleep_diagnostics, frozen, with_lesions
 from tissue.surface_mesh import SurfaceMesh, SurfaceView
 from tissue.threads import one_thread_below
 
@@ -297,6 +292,7 @@ class Tissue:
             landmarks_world_m=model.resting_landmarks(),
             lesion_centroids_world_m=kept[1].copy(),
             diagnostics=asleep_diagnostics(1e3 * (time.perf_counter() - start)),
+            method_penetration_m=0.0,
         )
 
     def reset(
@@ -472,27 +468,16 @@ class Tissue:
         of the front door's stable surface)."""
         return self._model
 
-    def _step_result(self, result: ContactResult) -> TissueStep:
-        diagnostics = result.diagnostics
+    def _step_result(self, result: TissueStep) -> TissueStep:
+        """The contact model's step with the tracked lesions' centroids added."""
         version = self._model.state_version
         kept = self._centroids
-        if diagnostics.get("asleep") and kept is not None and kept[0] == version:
+        if result.diagnostics.details.get("asleep") and kept is not None and kept[0] == version:
             centroids = kept[1]  # the nodes have not moved since
         else:
             centroids = self._lesions.centroids(self._model.node_positions, self._tracked)
             self._centroids = (version, centroids)
-        return TissueStep(
-            status=result.status,
-            time_s=result.time_s,
-            force_world_n=result.force_world,
-            torque_world_nm=result.torque_world,
-            contact_points_world_m=result.contact_points,
-            contact_forces_world_n=result.contact_forces,
-            skin_penetration_m=result.skin_penetration_m,
-            landmarks_world_m=result.landmarks,
-            lesion_centroids_world_m=centroids.copy(),
-            diagnostics=typed_diagnostics(diagnostics, result),
-        )
+        return with_lesions(result, centroids.copy())
 
 
 def pressing_direction(probe_quat_wxyz: ArrayLike) -> NDArray[np.float64]:

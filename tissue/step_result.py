@@ -1,6 +1,10 @@
-"""What a tissue step returns: :class:`TissueStep` and its :class:`StepDiagnostics`, and
-how the front door (:class:`tissue.model.Tissue`) builds them from a contact model's
-:class:`~tissue.contact.base.ContactResult`."""
+"""What a tissue step returns, from the contact model to the front door: one record,
+:class:`TissueStep`, with its :class:`StepDiagnostics`.
+
+A contact model's step (:meth:`tissue.contact.base.ContactModel.step`) builds it; the front
+door (:meth:`tissue.Tissue.step`) adds the lesions' centroids, which the tissue, not the
+contact model, tracks. Low in the layers (it imports only :mod:`tissue.status`), so that every
+layer that steps a tissue returns the same type."""
 
 from __future__ import annotations
 
@@ -13,7 +17,6 @@ from typing import Any, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from tissue.contact.base import ContactResult
 from tissue.status import StepStatus
 
 
@@ -60,12 +63,18 @@ class TissueStep:
         torque_world_nm: torque of those forces about the probe origin [N m], (3,).
         contact_points_world_m: where contact forces act [m], (k, 3).
         contact_forces_world_n: force on the probe at each [N], (k, 3).
-        skin_penetration_m: how far the skin (collision-surface vertices) lies inside the
-            probe's body [m], >= 0, measured the same way for every method.
+        skin_penetration_m: the deepest point of the skin's surface (the collision
+            surface's facets, not only its vertices) inside the probe's body [m], >= 0,
+            measured the same way for every method
+            (:meth:`tissue.contact.base.ContactModel.skin_depth`).
         landmarks_world_m: tracked points [m], (landmark_count, 3).
         lesion_centroids_world_m: deformed lesion centroids [m], (lesion_count, 3), or of
-            the lesions :meth:`Tissue.track_lesions` chose, in its order.
+            the lesions :meth:`Tissue.track_lesions` chose, in its order; (0, 3) from a
+            contact model's own step (the lesions are the tissue's, which adds them).
         diagnostics: how the step was solved.
+        method_penetration_m: the deepest of the points the method itself keeps out of the
+            probe (:meth:`tissue.contact.base.ContactModel.contact_points_world`) inside it
+            [m], >= 0: the method's own measure, which its penetration bound judges.
     """
 
     status: StepStatus
@@ -78,11 +87,17 @@ class TissueStep:
     landmarks_world_m: NDArray[np.float64]
     lesion_centroids_world_m: NDArray[np.float64]
     diagnostics: StepDiagnostics
+    method_penetration_m: float = 0.0
 
     @property
     def ok(self) -> bool:
         """Whether the step ended ``ok``."""
         return self.status is StepStatus.OK
+
+    @property
+    def contact_count(self) -> int:
+        """Contact points carrying force at the step's end."""
+        return int(self.contact_points_world_m.shape[0])
 
 
 _Frozen = TypeVar("_Frozen")
@@ -124,9 +139,15 @@ def asleep_diagnostics(compute_ms: float) -> StepDiagnostics:
     )
 
 
-def typed_diagnostics(diagnostics: Mapping[str, Any], result: ContactResult) -> StepDiagnostics:
+def typed_diagnostics(
+    diagnostics: Mapping[str, Any], contact_count: int, compute_ms: float
+) -> StepDiagnostics:
+    """A contact model's solver figures (its ``_advance``'s dictionary) as
+    :class:`StepDiagnostics`: the iteration count under whichever name the method gives it
+    (``newton_iterations``, ``iterations`` or PBD's ``substeps``), the typed fields, and every
+    other finite number in ``details``."""
     if diagnostics.get("asleep"):  # a sleeping step's are known
-        return asleep_diagnostics(float(result.compute_ms))
+        return asleep_diagnostics(compute_ms)
     iterations = next((diagnostics[key] for key in _ITERATION_KEYS if key in diagnostics), 1)
     ratio = diagnostics.get("min_volume_ratio")
     details = {
@@ -139,10 +160,16 @@ def typed_diagnostics(diagnostics: Mapping[str, Any], result: ContactResult) -> 
     return StepDiagnostics(
         iterations=int(iterations),
         linear_iterations=int(diagnostics.get("linear_iterations", 0)),
-        contact_count=result.contact_count,
+        contact_count=contact_count,
         sub_motions=int(diagnostics.get("sub_motions", 1)),
         subdivisions=int(diagnostics.get("subdivisions", 0)),
         min_volume_ratio=None if ratio is None else float(ratio),
-        compute_ms=float(result.compute_ms),
+        compute_ms=float(compute_ms),
         details=details,
     )
+
+
+def with_lesions(step: TissueStep, centroids: NDArray[np.float64]) -> TissueStep:
+    """``step`` with the lesions' centroids [m], (lesion_count, 3), that the tissue tracks
+    (the contact model's own step has none); the other fields are ``step``'s."""
+    return frozen(TissueStep, **{**step.__dict__, "lesion_centroids_world_m": centroids})

@@ -23,10 +23,10 @@ from tissue import (
     StepStatus,
     TissueInputError,
     TissueSpec,
+    TissueStep,
     make_tissue,
 )
 from tissue.lab import (
-    ContactResult,
     PBDConfig,
     PrescribedParams,
     Probe,
@@ -140,7 +140,7 @@ def run_compression(
     speed_m_s: float,
     progress: bool = False,
     monitor: StabilityMonitor | None = None,
-    observer: Callable[[ContactResult, NDArray[np.float64]], None] | None = None,
+    observer: Callable[[TissueStep, NDArray[np.float64]], None] | None = None,
     max_settle_steps: int = MAX_SETTLE_STEPS,
     resume: CompressionProgress | None = None,
     on_progress: Callable[[CompressionProgress], None] | None = None,
@@ -212,7 +212,7 @@ def run_compression(
             for done in steps:
                 monitor.observe(np.asarray(done["probe_pos"]), np.asarray(done["landmarks"]))
 
-    def take(pose: NDArray[np.float64], pose_quat: NDArray[np.float64]) -> ContactResult:
+    def take(pose: NDArray[np.float64], pose_quat: NDArray[np.float64]) -> TissueStep:
         nonlocal instability
         result = model.step(pose, pose_quat)
         steps.append(_step_record(result, pose))
@@ -273,7 +273,7 @@ def run_compression(
         if progress:
             print(
                 f"depth {stop.depth_m * 1e3:6.2f} mm: force {depths[-1]['force_normal_n']:8.4f} N, "
-                f"penetration {result.penetration_max_m * 1e3:6.3f} mm, {level_status.value}",
+                f"penetration {result.method_penetration_m * 1e3:6.3f} mm, {level_status.value}",
                 flush=True,
             )
         level_status = StepStatus.OK
@@ -300,32 +300,32 @@ def _motion_step_counts(
     return counts
 
 
-def _step_record(result: ContactResult, position: NDArray[np.float64]) -> dict[str, Any]:
+def _step_record(result: TissueStep, position: NDArray[np.float64]) -> dict[str, Any]:
     return {
         "t": result.time_s,
         "probe_pos": position.tolist(),
-        "force": result.force_world.tolist(),
-        "torque": result.torque_world.tolist(),
-        "penetration_max_m": result.penetration_max_m,
+        "force": result.force_world_n.tolist(),
+        "torque": result.torque_world_nm.tolist(),
+        "penetration_max_m": result.method_penetration_m,
         "skin_penetration_m": result.skin_penetration_m,
-        "landmarks": result.landmarks.tolist(),
+        "landmarks": result.landmarks_world_m.tolist(),
         "status": result.status.value,
-        "compute_ms": result.compute_ms,
+        "compute_ms": result.diagnostics.compute_ms,
     }
 
 
 def _depth_record(
-    result: ContactResult, depth: float, model: ContactModel, status: StepStatus
+    result: TissueStep, depth: float, model: ContactModel, status: StepStatus
 ) -> dict[str, Any]:
     pressing = model.probe.pressing_direction_world()
     return {
         "depth_m": depth,
-        "force": result.force_world.tolist(),
+        "force": result.force_world_n.tolist(),
         # The tissue pushes the probe back: report the normal force as a positive number.
-        "force_normal_n": float(-result.force_world @ pressing),
-        "penetration_max_m": result.penetration_max_m,
+        "force_normal_n": float(-result.force_world_n @ pressing),
+        "penetration_max_m": result.method_penetration_m,
         "skin_penetration_m": result.skin_penetration_m,
-        "landmarks": result.landmarks.tolist(),
+        "landmarks": result.landmarks_world_m.tolist(),
         "status": status.value,
     }
 

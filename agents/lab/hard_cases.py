@@ -45,9 +45,15 @@ from scipy.spatial.transform import Rotation
 
 from agents.lab.compress import Waypoint, plan_scene, run_compression, straight_path
 from agents.outputs import write_json
-from tissue import ConfigError, ContactModel, NeoHookean, ProbeShape, TissueMaterials
+from tissue import (
+    ConfigError,
+    ContactModel,
+    NeoHookean,
+    ProbeShape,
+    TissueMaterials,
+    TissueStep,
+)
 from tissue.lab import (
-    ContactResult,
     PBDConfig,
     PenaltyParams,
     PrescribedParams,
@@ -335,8 +341,8 @@ class _EnergyCheck:
         self._last_position = np.asarray(start_position, dtype=np.float64).copy()
         self._last_rotation = quat_to_matrix(start_quat)
 
-    def __call__(self, result: ContactResult, position: NDArray[np.float64]) -> None:
-        if result.diagnostics.get("subdivisions"):
+    def __call__(self, result: TissueStep, position: NDArray[np.float64]) -> None:
+        if result.diagnostics.subdivisions:
             self.subdivided_steps += 1
         # Backward Euler's discrete work: the end-of-step wrench times the step's motion (a
         # probe withdrawn in one step, whose end force is 0, takes no work back). The torque
@@ -344,8 +350,8 @@ class _EnergyCheck:
         # rotation's (the published poses turn the probe by up to a few degrees a level).
         rotation = quat_to_matrix(self.model.probe.quat_wxyz)
         turned = Rotation.from_matrix(rotation @ self._last_rotation.T).as_rotvec()
-        self.work_j += float(-result.force_world @ (position - self._last_position))
-        self.work_j += float(-result.torque_world @ turned)
+        self.work_j += float(-result.force_world_n @ (position - self._last_position))
+        self.work_j += float(-result.torque_world_nm @ turned)
         self._last_position = np.asarray(position).copy()
         self._last_rotation = rotation
         if self.sim is None or result.status.is_failure:

@@ -79,7 +79,7 @@ class ForceScanV1Env(ForceScanEnv):
     3 mm end tolerance, 1-3 N band, 5 degree tilt, 90 % good steps and 10 N limit: a success
     means what it meant there).
 
-    What changed from v0, and why (docs/training.md measured v0's failure to learn from
+    What changed from v0, and why (docs/learning-runs.md measured v0's failure to learn from
     scratch): v0 paid +1 for the whole path while each step out of the force band or tilt
     cost up to 0.6 and a failure -(201), so holding still was the cheaper policy; its 5 mm a
     step at full action made a fresh policy's exploring motion 1.8 mm a step, enough to lose

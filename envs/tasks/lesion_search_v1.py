@@ -75,7 +75,7 @@ class LesionSearchV1Env(LesionSearchEnv):
     press to get an image, sweep along the scan line until the lesion appears, bring it to
     the image's centre line and hold it there with an adequate, safe contact force.
 
-    What changed from v0, and why (docs/training.md measured v0's failure to learn): v0
+    What changed from v0, and why (docs/learning-runs.md measured v0's failure to learn): v0
     charged up to 0.9 every step and ended a force-limit failure at -(301), so keeping away
     from the skin was the best policy a learner found; its 5 mm a step at full action put
     a fresh policy's exploring motion at 1.8 mm a step against a 3 mm tolerance; and its

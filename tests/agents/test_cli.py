@@ -165,7 +165,7 @@ def test_json_is_strict_and_a_non_finite_force_is_a_failure(tmp_path) -> None:
     model._advance = poisoned
     result = model.step([0.0, 0.0, 0.2], [1.0, 0.0, 0.0, 0.0])
     assert result.status is StepStatus.DIVERGED
-    assert np.all(np.isfinite(result.force_world))
+    assert np.all(np.isfinite(result.force_world_n))
 
 
 def test_old_and_new_option_names_mean_the_same() -> None:

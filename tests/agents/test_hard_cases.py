@@ -71,7 +71,7 @@ def test_sliding_slip_is_resolved_in_time() -> None:
         )
         rows: list = []
         run_compression(model, start, stops, case.speed_m_s,
-                        observer=lambda r, p: rows.append((r.landmarks.copy(), p.copy())))  # noqa: B023  # fmt: skip
+                        observer=lambda r, p: rows.append((r.landmarks_world_m.copy(), p.copy())))  # noqa: B023  # fmt: skip
         landmarks = np.array([r[0] for r in rows])
         probe = np.array([r[1] for r in rows])
         moved = np.linalg.norm(np.diff(landmarks, axis=0), axis=2).max(axis=1)
@@ -184,6 +184,6 @@ def test_the_energy_check_fires_when_the_tissue_holds_more_than_the_probe_gave()
         pose = position - [0.0, 0.0, 2e-4 * k]
         result = model.step(pose, quat)
         honest(result, pose)
-        blind(replace(result, force_world=np.zeros(3), torque_world=np.zeros(3)), pose)
+        blind(replace(result, force_world_n=np.zeros(3), torque_world_nm=np.zeros(3)), pose)
     assert honest.ok and honest.work_j > 0
     assert not blind.ok and blind.worst_excess_j > 0.5 * honest.work_j

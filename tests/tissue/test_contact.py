@@ -61,14 +61,14 @@ def test_lagrange_multipliers_satisfy_signorini(block, mode: str) -> None:
     assert result.status is StepStatus.OK
     assert result.contact_count >= 1
     # Forces on the probe point out of the tissue (lambda >= 0): upwards here.
-    assert np.all(result.contact_forces[:, 2] >= 0.0)
-    assert result.force_world[2] > 0.0
+    assert np.all(result.contact_forces_world_n[:, 2] >= 0.0)
+    assert result.force_world_n[2] > 0.0
     # No penetration beyond the contact tolerance.
-    assert result.penetration_max_m < 1e-6
+    assert result.method_penetration_m < 1e-6
     # Complementarity: every point carrying force touches the probe. The paper's one
     # linearised response freezes the normals of a curved probe, which leaves gaps of order
     # (tangential motion)^2 / radius: microns here; the robust iteration removes them.
-    distance, _ = model.probe.signed_distance_world(result.contact_points)
+    distance, _ = model.probe.signed_distance_world(result.contact_points_world_m)
     assert np.all(np.abs(distance) < (5e-5 if mode == "paper" else 1e-6))
 
 
@@ -85,10 +85,10 @@ def test_lagrange_kept_factorization_matches_refactorizing(
         model = _model("lm", block, shape, mode="robust", quasi=quasi, params=params)
         result = _press(model, shape, 0.002, 10, SIZE / 2)
         assert result.status is StepStatus.OK, result.diagnostics
-        assert result.penetration_max_m < 1e-6
+        assert result.method_penetration_m < 1e-6
         results.append((result, model.sim.positions.copy()))
     (exact, x_exact), (kept, x_kept) = results
-    assert kept.force_world[2] == pytest.approx(exact.force_world[2], rel=1e-3)
+    assert kept.force_world_n[2] == pytest.approx(exact.force_world_n[2], rel=1e-3)
     assert np.abs(x_kept - x_exact).max() < 1e-3 * 0.002
 
 
@@ -106,11 +106,11 @@ def test_kept_response_leaves_far_free_constraints_out_of_the_lcp(
         model = _model("lm", block, shape, mode="robust", quasi=quasi, params=params)
         result = _press(model, shape, 0.002, 10, SIZE / 2)
         assert result.status is StepStatus.OK, result.diagnostics
-        assert result.penetration_max_m < 1e-6
+        assert result.method_penetration_m < 1e-6
         outcomes.append((result, model.sim.positions.copy(), model._compliance.solved_columns))
     (full, x_full, full_columns), (lazy, x_lazy, lazy_columns) = outcomes
     assert lazy_columns < full_columns
-    assert lazy.force_world[2] == pytest.approx(full.force_world[2], rel=1e-3)
+    assert lazy.force_world_n[2] == pytest.approx(full.force_world_n[2], rel=1e-3)
     assert np.abs(x_lazy - x_full).max() < 1e-3 * 0.002
 
 
@@ -141,11 +141,11 @@ def test_kept_solves_stop_at_the_accuracy_the_newton_tolerance_needs(
         monkeypatch.setattr(solver, "solve", counted)
         result = _press(model, shape, 0.002, 10, SIZE / 2)
         assert result.status is StepStatus.OK, result.diagnostics
-        assert result.penetration_max_m < 1e-6
+        assert result.method_penetration_m < 1e-6
         outcomes.append((result, model.sim.positions.copy(), iterations))
     (tight, x_tight, tight_iterations), (floored, x_floored, floored_iterations) = outcomes
     assert floored_iterations < tight_iterations
-    assert floored.force_world[2] == pytest.approx(tight.force_world[2], rel=1e-3)
+    assert floored.force_world_n[2] == pytest.approx(tight.force_world_n[2], rel=1e-3)
     assert np.abs(x_floored - x_tight).max() < 1e-3 * 0.002
 
 
@@ -208,9 +208,9 @@ def test_robust_lagrange_converges_quadratically_under_a_curved_probe(
         for depth_mm in range(1, 7):
             result = model.step(probe.position_world - [0.0, 0.0, 1e-3 * depth_mm], probe.quat_wxyz)
             assert result.status is StepStatus.OK, (threshold, depth_mm, result.diagnostics)
-            assert result.diagnostics["iterations"] <= allowed, (threshold, depth_mm)
-            assert result.diagnostics["exact_iterations"] >= 1
-            forces[threshold].append(result.force_world[2])
+            assert result.diagnostics.iterations <= allowed, (threshold, depth_mm)
+            assert result.diagnostics.details["exact_iterations"] >= 1
+            forces[threshold].append(result.force_world_n[2])
     np.testing.assert_allclose(forces[0], forces[10**9], rtol=1e-5)
 
 
@@ -245,13 +245,13 @@ def test_quasi_static_lagrange_relaxes_a_step_no_split_can_solve(
     result = _press(relaxed, shape, 0.002, 2, SIZE / 2)
     assert result.status is StepStatus.OK, result.diagnostics
     assert refused, "the static solver was never refused: the case does not test relaxation"
-    assert result.diagnostics["relaxation_steps"] >= 1
+    assert result.diagnostics.details["relaxation_steps"] >= 1
     assert result.time_s == pytest.approx(expected.time_s)
     # Both converged to the Newton tolerance on a kept factorisation: the lateral components
     # (zero but for that tolerance, ~1e-4 of the normal one) agree to 1e-5 of the force ...
-    scale = float(np.linalg.norm(expected.force_world))
+    scale = float(np.linalg.norm(expected.force_world_n))
     np.testing.assert_allclose(
-        result.force_world, expected.force_world, rtol=1e-4, atol=1e-5 * scale
+        result.force_world_n, expected.force_world_n, rtol=1e-4, atol=1e-5 * scale
     )
     # and the positions to the Newton tolerance (1e-4) of the 2 mm press.
     assert np.abs(relaxed.sim.positions - plain.sim.positions).max() < 1e-4 * 0.002
@@ -284,9 +284,9 @@ def test_lagrange_continues_from_a_saved_state_as_if_never_stopped(block) -> Non
     assert np.abs(resumed.sim.positions - whole.sim.positions).max() < 3e-8
     # The lateral components (1 % of the normal one: the block mesh is not symmetric) differ by
     # 3e-6 of the force: the rebuilt kept factorisation's inexact Newton steps.
-    scale = float(np.linalg.norm(expected.force_world))
+    scale = float(np.linalg.norm(expected.force_world_n))
     np.testing.assert_allclose(
-        result.force_world, expected.force_world, rtol=1e-5, atol=1e-5 * scale
+        result.force_world_n, expected.force_world_n, rtol=1e-5, atol=1e-5 * scale
     )
     with pytest.raises(NotImplementedError, match="'lm'"):
         _model("penalty", block, shape).saved_state()
@@ -342,15 +342,15 @@ def test_dynamic_robust_lagrange_steps_take_the_exact_tangent(block) -> None:
         for i in range(1, 21):
             result = model.step(probe.position_world - [0.0, 0.0, 2e-4 * i], probe.quat_wxyz)
             assert result.status is StepStatus.OK, (i, result.diagnostics)
-            iterations.append(result.diagnostics["iterations"])
-            exact.append(result.diagnostics["exact_iterations"])
+            iterations.append(result.diagnostics.iterations)
+            exact.append(result.diagnostics.details["exact_iterations"])
         return result, iterations, exact
 
     result, iterations, exact = press()
     assert 3 * block.node_count >= LagrangeParams.keep_factorization_unknowns
     assert exact == iterations
     tight, _, _ = press(newton_tolerance=1e-8)
-    assert result.force_world[2] == pytest.approx(tight.force_world[2], rel=1e-4)
+    assert result.force_world_n[2] == pytest.approx(tight.force_world_n[2], rel=1e-4)
     _, iterations, exact = press(rayleigh_stiffness=0.0)
     assert sum(exact) == 0 and sum(iterations) > 0
 
@@ -383,8 +383,8 @@ def test_dynamic_robust_lagrange_hands_a_converged_matrix_to_the_next_step(
         for i in range(1, 31):
             result = model.step(probe.position_world - [0.0, 0.0, 2e-4 * i], probe.quat_wxyz)
             assert result.status is StepStatus.OK, (i, result.diagnostics)
-            handed.append(result.diagnostics["chord_from_last_step"])
-            iterations += result.diagnostics["iterations"]
+            handed.append(result.diagnostics.details["chord_from_last_step"])
+            iterations += result.diagnostics.iterations
         return result, handed, sum(tangents), iterations
 
     result, handed, tangents, iterations = press()
@@ -396,8 +396,8 @@ def test_dynamic_robust_lagrange_hands_a_converged_matrix_to_the_next_step(
     fresh, handed_none, fresh_tangents, _ = press()
     assert not any(handed_none)
     assert fresh_tangents > tangents
-    assert result.force_world[2] == pytest.approx(fresh.force_world[2], rel=1e-4)
-    np.testing.assert_allclose(result.landmarks, fresh.landmarks, rtol=0, atol=1e-8)
+    assert result.force_world_n[2] == pytest.approx(fresh.force_world_n[2], rel=1e-4)
+    np.testing.assert_allclose(result.landmarks_world_m, fresh.landmarks_world_m, rtol=0, atol=1e-8)
 
 
 @pytest.mark.parametrize(("quasi", "depth_m", "steps"), [(False, 0.011, 6), (True, 0.009, 9)])
@@ -422,13 +422,13 @@ def test_robust_lagrange_never_steps_past_an_inversion(
     for i in range(1, steps + 1):
         result = model.step(probe.position_world - [0.0, 0.0, depth_m * i / steps], probe.quat_wxyz)
         assert result.status is StepStatus.OK, (i, result.diagnostics)
-        assert result.diagnostics["min_volume_ratio"] > 0.0
-        shortened += result.diagnostics["shortened_steps"]
-        started_at_x += result.diagnostics["started_at_x"]
+        assert result.diagnostics.min_volume_ratio > 0.0
+        shortened += result.diagnostics.details["shortened_steps"]
+        started_at_x += result.diagnostics.details["started_at_x"]
     # The case does reach the barrier, on both guards where the step is dynamic.
     assert shortened >= 1
     assert started_at_x >= (0 if quasi else 1)
-    assert result.force_world[2] > 0.0
+    assert result.force_world_n[2] > 0.0
 
 
 def test_robust_contact_moves_to_a_much_finer_volume_boundary() -> None:
@@ -452,7 +452,7 @@ def test_robust_contact_moves_to_a_much_finer_volume_boundary() -> None:
         assert robust.surface.count == boundary_surface(mesh).count
         result = _press(robust, shape, 0.001, 5, SIZE / 2)
         assert result.status is StepStatus.OK
-        assert result.force_world[2] > 0.0
+        assert result.force_world_n[2] > 0.0
 
 
 @pytest.mark.skipif(numba.config.NUMBA_NUM_THREADS < 2, reason="needs 2 numba threads to see one")
@@ -487,11 +487,11 @@ def test_penalty_penetration_shrinks_as_stiffness_grows(block) -> None:
         model = _model("penalty", block, shape, params=params)
         result = _press(model, shape, 0.002, 10, SIZE / 2)
         assert result.status is StepStatus.OK
-        penetrations.append(result.penetration_max_m)
-        forces.append(result.force_world[2])
+        penetrations.append(result.method_penetration_m)
+        forces.append(result.force_world_n[2])
     assert penetrations[0] > penetrations[1] > penetrations[2] > 0.0
     # Stiffer springs approach the exact (LM) answer.
-    exact = _press(_model("lm", block, shape), shape, 0.002, 10, SIZE / 2).force_world[2]
+    exact = _press(_model("lm", block, shape), shape, 0.002, 10, SIZE / 2).force_world_n[2]
     assert abs(forces[2] - exact) < abs(forces[0] - exact)
     assert forces[2] == pytest.approx(exact, rel=0.05)
 
@@ -502,14 +502,14 @@ def test_augmented_penalty_reaches_its_tolerance_with_soft_springs(block) -> Non
     model = _model("penalty", block, shape, params=soft)
     result = _press(model, shape, 0.002, 10, SIZE / 2)
     assert result.status is StepStatus.OK
-    assert result.penetration_max_m <= 2e-5
-    assert result.diagnostics["augmentations"] >= 1
+    assert result.method_penetration_m <= 2e-5
+    assert result.diagnostics.details["augmentations"] >= 1
     plain_params = PenaltyParams(stiffness_n_per_m=20.0, augmented=False)
     plain = _press(_model("penalty", block, shape, params=plain_params), shape, 0.002, 10, SIZE / 2)
-    exact = _press(_model("lm", block, shape), shape, 0.002, 10, SIZE / 2).force_world[2]
+    exact = _press(_model("lm", block, shape), shape, 0.002, 10, SIZE / 2).force_world_n[2]
     # The same soft k_s, augmented: the exact force, where plain springs miss it.
-    assert result.force_world[2] == pytest.approx(exact, rel=0.02)
-    assert abs(plain.force_world[2] - exact) > 5 * abs(result.force_world[2] - exact)
+    assert result.force_world_n[2] == pytest.approx(exact, rel=0.02)
+    assert abs(plain.force_world_n[2] - exact) > 5 * abs(result.force_world_n[2] - exact)
 
 
 @pytest.mark.parametrize("sliding", [False, True])
@@ -520,7 +520,7 @@ def test_prescribed_reaction_balances_the_fixed_base(block, sliding: bool) -> No
     result = _press(model, shape, 0.002, 10, SIZE / 2)
     assert result.status is StepStatus.OK
     base = model.sim.step().reaction_force_n(block.fixed_nodes)  # same pose: equilibrium
-    probe_force = model.step(model.probe.position_world, model.probe.quat_wxyz).force_world
+    probe_force = model.step(model.probe.position_world, model.probe.quat_wxyz).force_world_n
     # The probe pushes the tissue down; the base pushes it up by the same amount.
     np.testing.assert_allclose(base, probe_force, rtol=1e-3, atol=1e-6 * abs(probe_force[2]))
 
@@ -543,9 +543,9 @@ def test_sliding_prescribed_nodes_are_pushed_along_the_probe_normal_only(block, 
                 break
         assert result.status is StepStatus.OK
         assert result.contact_count >= 5
-        distance, normal = model.probe.signed_distance_world(result.contact_points)
-        along = np.einsum("ij,ij->i", result.contact_forces, normal)
-        across = np.linalg.norm(result.contact_forces - along[:, None] * normal, axis=1)
+        distance, normal = model.probe.signed_distance_world(result.contact_points_world_m)
+        along = np.einsum("ij,ij->i", result.contact_forces_world_n, normal)
+        across = np.linalg.norm(result.contact_forces_world_n - along[:, None] * normal, axis=1)
         tangential[sliding] = across.max() / np.abs(along).max()
         if sliding:
             assert np.all(along < 0.0)  # each node pushes the probe back, into it
@@ -582,8 +582,8 @@ def test_four_methods_agree_on_a_phantom_compression() -> None:
         for _ in range(15):  # settle
             result = model.step(position + [0.0, 0.0, -0.006], quat)
         assert result.status is StepStatus.OK, (method, result.status)
-        forces[method] = result.force_world[2]
-        lesions[method] = result.landmarks - mesh.landmarks.rest_positions
+        forces[method] = result.force_world_n[2]
+        lesions[method] = result.landmarks_world_m - mesh.landmarks.rest_positions
     reference_force, reference_lesions = forces["lm"], lesions["lm"]
     moved = np.linalg.norm(reference_lesions, axis=1) > 1e-3
     assert moved.any()
@@ -966,7 +966,7 @@ def test_online_prescribed_nodes_let_go_when_they_would_pull(block) -> None:
         result = model.step(position, probe.quat_wxyz)
         released = max(released, held_before - model.contact_nodes.size)
         assert result.status is StepStatus.OK
-        forces.append(result.force_world[2])
+        forces.append(result.force_world_n[2])
     # A node leaves one step after its reaction turns tensile: the pull lasts a step and
     # stays a small fraction of the press (held on, the tissue would drag the probe back).
     assert min(forces) >= -0.02 * max(forces), (min(forces), max(forces))

@@ -49,8 +49,9 @@ from functools import lru_cache
 import numpy as np
 import pytest
 
+from tissue import TissueStep
 from tissue.contact import make_contact_model
-from tissue.contact.base import ContactModel, ContactResult
+from tissue.contact.base import ContactModel
 from tissue.contact.lagrange import LagrangeParams
 from tissue.contact.penalty import PenaltyParams
 from tissue.contact.placement import first_contact_pose
@@ -131,7 +132,7 @@ def _mesh(block: Block, radius_m: float) -> TetMesh:
 
 def _press(
     method: str, mesh: TetMesh, shape: ProbeShape, depth_m: float, cell_m: float
-) -> tuple[ContactResult, ContactModel]:
+) -> tuple[TissueStep, ContactModel]:
     """Press ``shape`` straight down at the block's centre to ``depth_m`` past first contact.
 
     LM and penalty go there in one quasi-static step; online prescribed displacement (both
@@ -167,9 +168,9 @@ def _press(
     return result, model
 
 
-def _normal_force(result: ContactResult) -> float:
+def _normal_force(result: TissueStep) -> float:
     """The force the tissue pushes the probe back with [N] (> 0)."""
-    return float(-result.force_world @ DOWN)
+    return float(-result.force_world_n @ DOWN)
 
 
 def hertz_force(radius_m: float, depth_m: float) -> float:
@@ -196,15 +197,15 @@ def _check_hertz(method: str, block: Block, tolerance: float) -> float:
     error = _normal_force(result) / expected - 1.0
     print(f"Hertz {method}: {mesh.tet_count} tets, force error {error:+.4f}, {seconds:.1f} s")
     # The force acts along the pressing axis: no net sideways force, no torque.
-    assert np.all(np.abs(result.force_world[:2]) < 1e-3 * expected)
-    assert np.all(np.abs(result.torque_world) < 1e-3 * expected * contact_radius)
+    assert np.all(np.abs(result.force_world_n[:2]) < 1e-3 * expected)
+    assert np.all(np.abs(result.torque_world_nm) < 1e-3 * expected * contact_radius)
     # Contact radius a = sqrt(R delta): the farthest loaded point is within a cell of it.
-    reach = float(np.max(np.hypot(*result.contact_points[:, :2].T)))
+    reach = float(np.max(np.hypot(*result.contact_points_world_m[:, :2].T)))
     assert abs(reach - contact_radius) <= cell, (method, reach, contact_radius)
     if method == "penalty":  # stiff springs: the probe barely sinks in
-        assert result.penetration_max_m < 0.01 * HERTZ_DEPTH_M
+        assert result.method_penetration_m < 0.01 * HERTZ_DEPTH_M
     else:
-        assert result.penetration_max_m < 1e-4 * HERTZ_DEPTH_M
+        assert result.method_penetration_m < 1e-4 * HERTZ_DEPTH_M
     assert abs(error) <= tolerance, (method, error)
     return error
 
@@ -267,9 +268,9 @@ def test_flat_punch_force_follows_sneddon(method: str) -> None:
     error = _normal_force(result) / expected - 1.0
     print(f"Sneddon {method}: {mesh.tet_count} tets, force error {error:+.4f}")
     # The face carries the load: every loaded point lies under it, and all of its nodes.
-    assert np.hypot(*result.contact_points[:, :2].T).max() < radius
+    assert np.hypot(*result.contact_points_world_m[:, :2].T).max() < radius
     assert result.contact_count == PUNCH_NODES
-    assert abs(result.torque_world).max() < 1e-3 * expected * radius
+    assert abs(result.torque_world_nm).max() < 1e-3 * expected * radius
     assert abs(error) <= 0.05, (method, error)
 
 

@@ -74,7 +74,7 @@ def test_rest_stays_at_rest(block: TetMesh) -> None:
         result = model.step(position, quat)
         assert result.status is StepStatus.OK
         assert result.contact_count == 0
-        np.testing.assert_array_equal(result.force_world, 0.0)
+        np.testing.assert_array_equal(result.force_world_n, 0.0)
     # The coupled deviatoric/hydrostatic solve keeps the rest state exactly (round-off only).
     assert np.abs(model.node_positions - block.nodes).max() < 1e-12
     assert model.kinetic_energy_j() < 1e-20
@@ -90,18 +90,18 @@ def test_pressing_a_block(block: TetMesh) -> None:
         previous = depth
         for result in results:
             assert result.status is StepStatus.OK
-            assert np.all(np.isfinite(result.force_world))
+            assert np.all(np.isfinite(result.force_world_n))
             # Hard contact projected last in every sweep: no penetration beyond round-off.
-            assert result.penetration_max_m <= 1e-9
-            assert result.diagnostics["min_volume_ratio"] > 0.0
+            assert result.method_penetration_m <= 1e-9
+            assert result.diagnostics.min_volume_ratio > 0.0
         last = results[-1]
         direction = Probe.looking_along(PROBE_SHAPE, (0, 0, 0), (0, 0, -1))
         pressing = direction.pressing_direction_world()
         # The tissue pushes back against the pressing direction, mostly along it.
-        normal = -float(last.force_world @ pressing)
+        normal = -float(last.force_world_n @ pressing)
         assert normal > 0.0
-        assert np.linalg.norm(last.force_world[:2]) < 0.05 * normal
-        np.testing.assert_allclose(last.contact_forces.sum(axis=0), last.force_world)
+        assert np.linalg.norm(last.force_world_n[:2]) < 0.05 * normal
+        np.testing.assert_allclose(last.contact_forces_world_n.sum(axis=0), last.force_world_n)
         assert last.contact_count > 0
         normal_forces.append(normal)
     assert np.all(np.diff(normal_forces) > 0.0), normal_forces
@@ -120,9 +120,9 @@ def test_force_balances_the_fixed_base_at_equilibrium(block: TetMesh) -> None:
     model = PBDContact(block, PROBE_SHAPE)
     result = _press(model, 0.003, hold_steps=40)[-1]
     assert model.kinetic_energy_j() < 1e-12
-    support = result.diagnostics["support_force_n"]
+    support = model.support_force_n
     np.testing.assert_allclose(
-        result.force_world, support, atol=5e-3 * np.linalg.norm(result.force_world)
+        result.force_world_n, support, atol=5e-3 * np.linalg.norm(result.force_world_n)
     )
 
 
@@ -158,8 +158,8 @@ def test_compliant_contact_penetrates_in_proportion(block: TetMesh) -> None:
     compliance = 2e-3  # m/N
     model = PBDContact(block, PROBE_SHAPE, config=PBDConfig(contact_compliance_m_per_n=compliance))
     result = _press(model, 0.003, hold_steps=40)[-1]
-    largest = float(np.linalg.norm(result.contact_forces, axis=1).max())
-    assert result.penetration_max_m == pytest.approx(compliance * largest, rel=0.1)
+    largest = float(np.linalg.norm(result.contact_forces_world_n, axis=1).max())
+    assert result.method_penetration_m == pytest.approx(compliance * largest, rel=0.1)
 
 
 def _tets_to_nan(x, *args) -> None:  # stands in for the numba kernel
@@ -197,7 +197,7 @@ def test_inversion_is_reported(block: TetMesh, monkeypatch: pytest.MonkeyPatch) 
     monkeypatch.setattr(pbd.sweep, "project_tets_two_domains", _tets_invert)
     result = model.step(*_pose(block, -0.002))
     assert result.status is StepStatus.INVERTED
-    assert result.diagnostics["min_volume_ratio"] < 0.0
+    assert result.diagnostics.min_volume_ratio < 0.0
     assert np.all(np.isfinite(model.node_positions))
 
 
@@ -540,7 +540,7 @@ for step in range(1, 11):
     probe = Probe.looking_along(shape, (centre[0], centre[1], top - 2e-4 * step), (0, 0, -1))
     result = model.step(probe.position_world, probe.quat_wxyz)
 print(json.dumps({"built": built, "stepped": signatures(),
-                  "contacts": int(result.diagnostics["active_contacts_max"])}))
+                  "contacts": int(result.diagnostics.details["active_contacts_max"])}))
 """
 
 
@@ -663,9 +663,9 @@ def test_two_domain_order_keeps_the_public_state_in_mesh_numbering() -> None:
         assert result.status is StepStatus.OK
         results[domains] = (model, result)
     (mesh_order, by_mesh), (two_domain, by_domains) = results[1], results[2]
-    assert by_mesh.force_world[2] > 0.05
-    assert by_domains.force_world[2] == pytest.approx(by_mesh.force_world[2], rel=2e-3)
-    np.testing.assert_allclose(by_domains.landmarks, by_mesh.landmarks, atol=2e-6)
+    assert by_mesh.force_world_n[2] > 0.05
+    assert by_domains.force_world_n[2] == pytest.approx(by_mesh.force_world_n[2], rel=2e-3)
+    np.testing.assert_allclose(by_domains.landmarks_world_m, by_mesh.landmarks_world_m, atol=2e-6)
     # Nodes under the probe differ most (7 um here); a wrong numbering would move them by cm.
     np.testing.assert_allclose(two_domain.node_positions, mesh_order.node_positions, atol=2e-5)
     _, _, density = two_domain.materials.per_tet(mesh.region)

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tissue.contact.base import ContactResult
 from tissue.contact.stability import StabilityLimits, StabilityMonitor
 from tissue.errors import ConfigError
 from tissue.status import StepStatus
+from tissue.step_result import StepDiagnostics, TissueStep
 
 REST = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.01, 0.0], [0.0, 0.0, 0.01]])
 
@@ -19,17 +19,28 @@ def _result(
     landmark: tuple[float, float, float] = (0.0, 0.0, 0.005),
     force: tuple[float, float, float] = (0.0, 0.0, 1.0),
     compute_ms: float = 1.0,
-) -> ContactResult:
-    return ContactResult(
+) -> TissueStep:
+    diagnostics = StepDiagnostics(
+        iterations=1,
+        linear_iterations=0,
+        contact_count=0,
+        sub_motions=1,
+        subdivisions=0,
+        min_volume_ratio=None,
+        compute_ms=compute_ms,
+    )
+    return TissueStep(
         status=status,
         time_s=0.02,
-        force_world=np.array(force),
-        torque_world=np.zeros(3),
-        contact_points=np.zeros((0, 3)),
-        contact_forces=np.zeros((0, 3)),
-        penetration_max_m=penetration,
-        landmarks=np.array([landmark]),
-        compute_ms=compute_ms,
+        force_world_n=np.array(force),
+        torque_world_nm=np.zeros(3),
+        contact_points_world_m=np.zeros((0, 3)),
+        contact_forces_world_n=np.zeros((0, 3)),
+        skin_penetration_m=0.0,
+        landmarks_world_m=np.array([landmark]),
+        lesion_centroids_world_m=np.zeros((0, 3)),
+        diagnostics=diagnostics,
+        method_penetration_m=penetration,
     )
 
 
@@ -54,7 +65,7 @@ def test_a_quiet_step_is_stable() -> None:
         ("blow_up", _result(), REST + np.array([0.0, 0.0, 0.006])),
     ],
 )
-def test_each_check_fires(kind: str, result: ContactResult, positions: np.ndarray) -> None:
+def test_each_check_fires(kind: str, result: TissueStep, positions: np.ndarray) -> None:
     found = _monitor().check(result, positions, np.array([0.0, 0.0, 0.0199]))
     assert found is not None and found.kind == kind
 

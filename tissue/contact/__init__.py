@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from tissue.contact.base import ContactModel, ContactResult
+from tissue.contact.base import ContactModel
 from tissue.contact.lagrange import LagrangeContact, LagrangeParams
 from tissue.contact.penalty import PenaltyContact, PenaltyParams
 from tissue.contact.prescribed import PrescribedContact, PrescribedParams
@@ -44,7 +44,6 @@ def make_contact_model(method: str, mesh, probe_shape, **kwargs: Any) -> Contact
 __all__ = [
     "CONTACT_MODELS",
     "ContactModel",
-    "ContactResult",
     "LagrangeContact",
     "LagrangeParams",
     "PenaltyContact",

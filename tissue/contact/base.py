@@ -2,9 +2,10 @@
 
 A contact model owns a tissue (the FE simulator, or the PBD backend) and a rigid probe.
 Each :meth:`ContactModel.step` takes the probe's new pose, advances the tissue one
-``tissue_dt`` and returns a :class:`ContactResult`: the wrench on the probe (force [N] and
-torque [N m] about the probe origin, world frame), the per-contact forces, the largest
-penetration, the landmark positions and a status. Bad input raises; a physical failure is a
+``tissue_dt`` and returns a :class:`tissue.TissueStep` (the same record the front door
+returns): the wrench on the probe (force [N] and torque [N m] about the probe origin, world
+frame), the per-contact forces, the penetration, the landmark positions, how the step was
+solved and a status. Bad input raises; a physical failure is a
 status.
 """
 
@@ -13,7 +14,6 @@ from __future__ import annotations
 import abc
 import math
 import time
-from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
@@ -29,46 +29,12 @@ from tissue.probe.surface_depth import SurfaceDepth, surface_depth
 from tissue.sim.simulator import SimulationConfig
 from tissue.sim.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.status import StepStatus, worst
+from tissue.step_result import TissueStep, asleep_diagnostics, frozen, typed_diagnostics
 from tissue.threads import one_thread_below
 
-
-@dataclass(frozen=True)
-class ContactResult:
-    """What one coupled step did.
-
-    Attributes:
-        status: ``ok`` or the instability met.
-        time_s: simulated time after the step [s].
-        force_world: force the tissue applies to the probe [N], (3,).
-        torque_world: torque of those forces about the probe origin [N m], (3,).
-        contact_points: where contact forces act [m], (contact_count, 3).
-        contact_forces: force on the probe at each contact point [N], (contact_count, 3).
-        penetration_max_m: deepest tissue point inside the probe [m] (>= 0), over the points
-            the method keeps out of it (:meth:`ContactModel.contact_points_world`).
-        landmarks: landmark positions [m], (landmark_count, 3).
-        compute_ms: wall time of the step [ms].
-        diagnostics: solver details (iterations, residuals, substeps, ...).
-        skin_penetration_m: the deepest point of the skin's surface (the collision
-            surface's facets, not only its vertices) inside the probe [m] (>= 0), the same
-            measure for every method (:meth:`ContactModel.skin_depth`).
-    """
-
-    status: StepStatus
-    time_s: float
-    force_world: NDArray[np.float64]
-    torque_world: NDArray[np.float64]
-    contact_points: NDArray[np.float64]
-    contact_forces: NDArray[np.float64]
-    penetration_max_m: float
-    landmarks: NDArray[np.float64]
-    compute_ms: float
-    diagnostics: dict[str, Any] = field(default_factory=dict)
-    skin_penetration_m: float = 0.0
-
-    @property
-    def contact_count(self) -> int:
-        return int(self.contact_points.shape[0])
-
+#: A contact model's own step locates no lesions (the tissue's step adds them): (0, 3).
+NO_LESIONS = np.zeros((0, 3))
+NO_LESIONS.flags.writeable = False
 
 #: A probe pressed back harder than this [N] has not passed through the tissue, whatever its
 #: samples say (see :mod:`tissue.contact.tunnelling`).
@@ -291,7 +257,7 @@ class ContactModel(FreeAirSleep, abc.ABC):
         h: float,
         pieces: int,
         start: float,
-    ) -> ContactResult:
+    ) -> TissueStep:
         """A sleeping step that :meth:`sleep_if_clear` left to the full checks (see
         :meth:`step`): the probe at ``end``, the clock advanced as ``pieces`` sub-motions of
         ``h`` [s] would advance it; ``start``: the step's ``time.perf_counter()`` at its
@@ -303,32 +269,32 @@ class ContactModel(FreeAirSleep, abc.ABC):
         )
         return self._asleep_result(start)
 
-    def _asleep_result(self, start: float) -> ContactResult:
+    def _asleep_result(self, start: float) -> TissueStep:
         """What a sleeping step returns; ``start``: its ``time.perf_counter()`` at its
         start."""
-        diagnostics = {"iterations": 0, "linear_iterations": 0, "sub_motions": 1, "asleep": 1.0}
-        return ContactResult(
+        return frozen(
+            TissueStep,
             status=StepStatus.OK,
             time_s=self._time,
-            force_world=np.zeros(3),
-            torque_world=np.zeros(3),
-            contact_points=np.zeros((0, 3)),
-            contact_forces=np.zeros((0, 3)),
-            penetration_max_m=0.0,
-            landmarks=self.resting_landmarks(),
-            compute_ms=1e3 * (time.perf_counter() - start),
-            diagnostics=diagnostics,
+            force_world_n=np.zeros(3),
+            torque_world_nm=np.zeros(3),
+            contact_points_world_m=np.zeros((0, 3)),
+            contact_forces_world_n=np.zeros((0, 3)),
             skin_penetration_m=0.0,
+            landmarks_world_m=self.resting_landmarks(),
+            lesion_centroids_world_m=NO_LESIONS,
+            diagnostics=asleep_diagnostics(1e3 * (time.perf_counter() - start)),
+            method_penetration_m=0.0,
         )
 
-    def step(self, position_world: ArrayLike, quat_wxyz: ArrayLike) -> ContactResult:
+    def step(self, position_world: ArrayLike, quat_wxyz: ArrayLike) -> TissueStep:
         """Move the probe to the pose and advance the tissue one ``tissue_dt``.
 
         A probe motion longer than :attr:`max_sub_motion_m` since the pose the tissue last
         saw (the translation plus the rotation angle times the probe's bounding radius) is
         split into equal sub-motions shorter than it, each a tissue step of an equal share
         of ``tissue_dt``: otherwise the skin could pass through the probe within one step
-        and no method would see it (``diagnostics["sub_motions"]`` counts them). A
+        and no method would see it (``diagnostics.sub_motions`` counts them). A
         sub-motion that fails (diverged, solver failed) ends the step there, with the
         state of the sub-motions before it.
 
@@ -344,7 +310,7 @@ class ContactModel(FreeAirSleep, abc.ABC):
         anywhere along the motion, and the step would only relax a tissue already at rest. A
         sleeping step moves the probe, advances the time, leaves positions and velocities as
         they are and returns no force, no contact points, zero penetration, status ok and
-        ``diagnostics["asleep"] = 1.0``; the method's solve is not run. The next step that
+        ``diagnostics.details["asleep"] = 1.0``; the method's solve is not run. The next step that
         does not meet these conditions (the probe approaching) runs in full, sweeping from
         the last pose. A full step in free air moves a tissue at rest only by round-off
         (about 1e-17 m, where it moves it at all): so much does a sleeping step differ from
@@ -365,7 +331,7 @@ class ContactModel(FreeAirSleep, abc.ABC):
 
     def step_after_sleep_check(
         self, position_world: ArrayLike, quat_wxyz: ArrayLike, start: float | None = None
-    ) -> ContactResult:
+    ) -> TissueStep:
         """:meth:`step` once :meth:`sleep_if_clear` has returned False for this pose: the
         step's full checks (it may still sleep) and, unless it sleeps, its work.
         ``start``: the step's ``time.perf_counter()`` at its start (None: now)."""
@@ -429,18 +395,18 @@ class ContactModel(FreeAirSleep, abc.ABC):
         }
         self._quiet = status is StepStatus.OK and points.shape[0] == 0
         elapsed_ms = 1e3 * (time.perf_counter() - start)
-        return ContactResult(
+        return TissueStep(
             status=status,
             time_s=self._time,
-            force_world=np.asarray(force, dtype=np.float64),
-            torque_world=np.asarray(torque, dtype=np.float64),
-            contact_points=points,
-            contact_forces=forces,
-            penetration_max_m=self.penetration_max_m(),
-            landmarks=self.landmark_positions(),
-            compute_ms=elapsed_ms,
-            diagnostics=diagnostics,
+            force_world_n=np.asarray(force, dtype=np.float64),
+            torque_world_nm=np.asarray(torque, dtype=np.float64),
+            contact_points_world_m=points,
+            contact_forces_world_n=forces,
             skin_penetration_m=skin.depth_m,
+            landmarks_world_m=self.landmark_positions(),
+            lesion_centroids_world_m=NO_LESIONS,
+            diagnostics=typed_diagnostics(diagnostics, int(points.shape[0]), elapsed_ms),
+            method_penetration_m=self.penetration_max_m(),
         )
 
     def sub_motion_count(

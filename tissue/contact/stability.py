@@ -31,10 +31,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from tissue.contact.base import ContactResult
 from tissue.contact.registry import contact_class, contact_method
 from tissue.errors import ConfigError
 from tissue.status import StepStatus
+from tissue.step_result import TissueStep
 
 
 @dataclass(frozen=True)
@@ -160,7 +160,7 @@ class StabilityMonitor:
 
     def check(
         self,
-        result: ContactResult,
+        result: TissueStep,
         node_positions: NDArray[np.float64],
         probe_position: NDArray[np.float64],
     ) -> Instability | None:
@@ -171,7 +171,7 @@ class StabilityMonitor:
             node_positions: tissue node positions after the step [m], (node_count, 3).
             probe_position: the probe origin the step was taken at [m], (3,).
         """
-        landmarks = result.landmarks
+        landmarks = result.landmarks_world_m
         probe_motion, previous_landmarks = self.observe(probe_position, landmarks)
         skin_only = (
             result.status is StepStatus.PENETRATED and not self.limits.penetrated_is_unstable
@@ -180,22 +180,22 @@ class StabilityMonitor:
             return Instability("status", f"the tissue step reported '{result.status.value}'")
         finite = (
             np.all(np.isfinite(node_positions))
-            and np.all(np.isfinite(result.force_world))
-            and np.all(np.isfinite(result.torque_world))
+            and np.all(np.isfinite(result.force_world_n))
+            and np.all(np.isfinite(result.torque_world_nm))
             and np.all(np.isfinite(landmarks))
         )
         if not finite:
             return Instability("non_finite", "NaN or Inf in the positions, wrench or landmarks")
-        if result.compute_ms > 1e3 * self.limits.step_timeout_s:
+        if result.diagnostics.compute_ms > 1e3 * self.limits.step_timeout_s:
             return Instability(
                 "timeout",
-                f"the step took {result.compute_ms / 1e3:.1f} s "
+                f"the step took {result.diagnostics.compute_ms / 1e3:.1f} s "
                 f"(limit {self.limits.step_timeout_s:g} s)",
             )
-        if result.penetration_max_m > self.penetration_bound_m:
+        if result.method_penetration_m > self.penetration_bound_m:
             return Instability(
                 "penetration",
-                f"penetration {result.penetration_max_m * 1e3:.3f} mm beyond the "
+                f"penetration {result.method_penetration_m * 1e3:.3f} mm beyond the "
                 f"{self.method} bound {self.penetration_bound_m * 1e3:.2f} mm",
             )
         allowed = self.limits.blow_up_factor * self._largest_travel + self.limits.blow_up_margin_m

@@ -42,7 +42,7 @@ over all constraints (multipliers reset at each substep), and v = (x - x_prev) /
 * Force: every correction is M^-1 grad C^T d lambda, so over a substep the constraint force is
   grad C^T lambda / h^2 exactly (Macklin et al. 2016). The force reported on the probe is the
   step's average, f_k = -(1 / substeps) sum_s n_ks lambda_ks / h^2, at the contact point's
-  end-of-step position; the same sums at the fixed nodes give ``support_force_n``, which
+  end-of-step position; the same sums at the fixed nodes give ``PBDContact.support_force_n``, which
   equals the contact force at static equilibrium.
 
 Profiles

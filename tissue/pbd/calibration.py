@@ -237,9 +237,9 @@ def _press(
     force = 0.0
     for depth in _ramp_depths(depth_m, speed_m_s, hold_s, model.dt):
         result = model.step(origin + depth * direction, quat)
-        times.append(result.compute_ms)
+        times.append(result.diagnostics.compute_ms)
         worst = max(worst, result.status, key=_severity)
-        force = float(-result.force_world @ direction)
+        force = float(-result.force_world_n @ direction)
     return CompressionResponse(
         force_n=force,
         lesion_displacements_m=model.landmark_positions() - rest,

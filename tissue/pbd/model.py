@@ -336,6 +336,15 @@ class PBDContact(ContactModel):
         self._x = self.mesh.nodes.copy()
         self._v = np.zeros_like(self._x)
         self._previous_pose: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+        self._support_force_n = np.zeros(3)
+
+    @property
+    def support_force_n(self) -> NDArray[np.float64]:
+        """The fixed base's force on the tissue over the last step [N], (3,), world frame:
+        minus the elastic constraint forces at the fixed nodes, averaged over the step; it
+        equals the force on the probe at static equilibrium. NaN after a diverged step,
+        zero after a reset."""
+        return self._support_force_n.copy()
 
     def kinetic_energy_j(self) -> float:
         """Kinetic energy of the tissue now [J]."""
@@ -484,7 +493,7 @@ class PBDContact(ContactModel):
         }
         self._previous_pose = (end_position, end_quat)
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(v))):
-            diagnostics["support_force_n"] = np.full(3, np.nan)
+            self._support_force_n = np.full(3, np.nan)
             # Nothing non-finite is stored: the state before the step stays.
             return StepStatus.DIVERGED, np.zeros((0, 3)), np.zeros((0, 3)), diagnostics
         min_ratio = float(min_volume_ratio(x, arrays.tets, arrays.rest_volume))
@@ -493,7 +502,7 @@ class PBDContact(ContactModel):
         diagnostics["min_volume_ratio"] = min_ratio
         # Force of the base on the tissue: minus the elastic constraint forces at fixed nodes,
         # averaged over the step (impulse / tissue_dt).
-        diagnostics["support_force_n"] = -support.sum(axis=0) / step_s
+        self._support_force_n = -support.sum(axis=0) / step_s
         in_contact = np.flatnonzero(np.any(impulse != 0.0, axis=1))
         points_world = self._positions(self._x)[in_contact]
         forces = -impulse[in_contact] / step_s

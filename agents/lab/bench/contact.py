@@ -180,19 +180,19 @@ def benchmark_one(
         step += 1
         travel = STEP_ADVANCE_M * step
         result = model.step(start.position_world + travel * direction, quat)
-        wall_s += result.compute_ms / 1e3
+        wall_s += result.diagnostics.compute_ms / 1e3
         statuses[result.status.value] += 1
-        penetration_max = max(penetration_max, result.penetration_max_m)
+        penetration_max = max(penetration_max, result.method_penetration_m)
         skin_max = max(skin_max, result.skin_penetration_m)
         skin_vertex_max = max(
-            skin_vertex_max, float(result.diagnostics.get("skin_vertex_penetration_m", 0.0))
+            skin_vertex_max, float(result.diagnostics.details.get("skin_vertex_penetration_m", 0.0))
         )
-        normal_forces.append(float(-direction @ result.force_world))
-        in_contact = result.contact_count > 0 or bool(np.any(result.force_world != 0.0))
+        normal_forces.append(float(-direction @ result.force_world_n))
+        in_contact = result.contact_count > 0 or bool(np.any(result.force_world_n != 0.0))
         if first_contact_step is None and in_contact:
             first_contact_step = step
         if first_contact_step is not None:
-            contact_ms.append(result.compute_ms)
+            contact_ms.append(result.diagnostics.compute_ms)
             if step - first_contact_step >= steps:
                 break
         elif step >= MAX_APPROACH_STEPS:
@@ -202,7 +202,7 @@ def benchmark_one(
             break
     assert result is not None
 
-    lesion = result.landmarks[0]
+    lesion = result.landmarks_world_m[0]
     contact_step = first_contact_step if first_contact_step is not None else step
     return {
         "method": method,
@@ -221,8 +221,8 @@ def benchmark_one(
         "skin_penetration_max_m": skin_max,
         "skin_vertex_penetration_max_m": skin_vertex_max,
         "force_largest_dip": largest_force_dip(normal_forces),
-        "force_n": float(-direction @ result.force_world),
-        "force_world_n": [float(f) for f in result.force_world],
+        "force_n": float(-direction @ result.force_world_n),
+        "force_world_n": [float(f) for f in result.force_world_n],
         "depth_beyond_contact_m": STEP_ADVANCE_M * (step - contact_step),
         "status_counts": dict(statuses),
         "stopped_by_wall_budget": stopped,

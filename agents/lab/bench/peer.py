@@ -309,7 +309,7 @@ def _press_ours(
 ) -> tuple[list[float], Counter[str], Any]:
     """Press our box probe ``travel_m`` down in equal increments of about ``increment_m``.
 
-    Returns the wall time of each step [s], the step statuses and the last ContactResult.
+    Returns the wall time of each step [s], the step statuses and the last TissueStep.
     Stops early (statuses then count ``stopped_by_wall_budget``) once the steps have taken
     :data:`MUJOCO_WALL_BUDGET_S`, the same budget MuJoCo runs get.
     """
@@ -356,10 +356,10 @@ def reference_lesion(
         "quasi_static": True,
         "increment_m": travel_m / len(samples),
         "status_counts": dict(statuses),
-        "force_n": float(result.force_world[2]),
+        "force_n": float(result.force_world_n[2]),
         "wall_s": float(sum(samples)),
     }
-    return np.asarray(result.landmarks[0], dtype=np.float64), info
+    return np.asarray(result.landmarks_world_m[0], dtype=np.float64), info
 
 
 def run_ours(
@@ -371,7 +371,7 @@ def run_ours(
     samples, statuses, result = _press_ours(
         mesh, method, config, PAPER_PROBE_SPEED_M_S * PAPER_TISSUE_DT_S, travel
     )
-    lesion = np.asarray(result.landmarks[0], dtype=np.float64)
+    lesion = np.asarray(result.landmarks_world_m[0], dtype=np.float64)
     stopped = "stopped_by_wall_budget" in statuses
     completed = len(samples) * PAPER_TISSUE_DT_S
     return {
@@ -380,8 +380,8 @@ def run_ours(
         "completed_sim_s": completed,
         **_timing(samples, PAPER_TISSUE_DT_S),
         "status_counts": dict(statuses),
-        "force_n": float(result.force_world[2]),
-        "penetration_max_m": float(result.penetration_max_m),
+        "force_n": float(result.force_world_n[2]),
+        "penetration_max_m": float(result.method_penetration_m),
         "lesion1_m": [float(v) for v in lesion],
         # A run cut short ends at another depth: no error against the reference.
         "lesion_error_m": math.nan if stopped else float(np.linalg.norm(lesion - reference)),

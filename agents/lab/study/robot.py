@@ -38,7 +38,7 @@ from agents.lab.compress import SETTLED_SPEED_M_S, START_CLEARANCE_M
 from agents.lab.study.cell import STUDY_LIMITS, scene_for, source_revision, summarise_times
 from agents.lab.study.spec import Cell, StudySpec
 from tissue import ConfigError, TissueInputError
-from tissue.lab import ContactResult, StabilityMonitor
+from tissue.lab import StabilityMonitor
 
 #: The environment the robot cells run in.
 ROBOT_ENV_ID = "probegym/BreastCompress-v0"
@@ -152,24 +152,6 @@ def tracking_error(
     return along, across, math.degrees(rotation_angle(actual_rot, rotation))
 
 
-def _as_contact_result(step: Any, tissue: Any) -> ContactResult:
-    """A tissue step as the stability monitor reads it, with the penetration the kinematic
-    study bounds: the method's own measure, over the points it acts on (the collision
-    surface for LM and penalty, the volume's boundary nodes for prescribed displacement and
-    PBD), read from ``tissue``'s contact model, not the skin's that the front door reports."""
-    return ContactResult(
-        status=step.status,
-        time_s=step.time_s,
-        force_world=step.force_world_n,
-        torque_world=step.torque_world_nm,
-        contact_points=step.contact_points_world_m,
-        contact_forces=step.contact_forces_world_n,
-        penetration_max_m=float(tissue.contact_model.penetration_max_m()),
-        landmarks=step.landmarks_world_m,
-        compute_ms=step.diagnostics.compute_ms,
-    )
-
-
 def _arm_finite(env: Any) -> bool:
     data = env.data
     return bool(np.all(np.isfinite(data.qpos)) and np.all(np.isfinite(data.qvel)))
@@ -244,9 +226,7 @@ def run_robot_cell(spec: StudySpec, cell: Cell, env: Any | None = None) -> dict[
                 }
             else:
                 actual, _ = env.probe_pose()
-                found = monitor.check(
-                    _as_contact_result(step, env.tissue), env.tissue.positions_m, actual
-                )
+                found = monitor.check(step, env.tissue.positions_m, actual)
                 if found is not None:
                     instability = {"step": steps, "kind": found.kind, "detail": found.detail}
             steps += 1

@@ -4,7 +4,7 @@
 The scripted policies (:data:`agents.learning.policies.SCRIPTED_POLICIES`) solve every task; a
 network that first imitates one starts its reinforcement learning where the task's reward
 is earned, not where random motion leads (for ForceScan: holding the force band while
-moving along the skin, which PPO from scratch does not find; see docs/training.md).
+moving along the skin, which PPO from scratch does not find; see docs/learning-runs.md).
 
 :func:`scripted_demonstrations` runs the scripted policy for N seeded episodes in one env,
 its action scales set to the env's, and returns every observation with the action taken
