@@ -16,6 +16,7 @@ Importing this package registers the environments::
 | ``probegym/LesionSearch-v1`` | v0's task with a shaped reward, the sweep observed, 2 mm a step |
 | ``probegym/ForceScan-v1`` | v0's task with a shaped reward, the force's history, 2 mm a step |
 | ``probegym/BreastCompress-v1`` | v0's task, the compression asked at most 28 % of the depth |
+| ``probegym/BreastCompress-v2`` | v1's task with a shaped reward, the hold observed, 2 mm a step |
 
 Every task takes ``domain_randomization=True`` (or a dict, or a :class:`DomainRandomization`):
 tissue and lesion stiffness, lesion placement, F/T noise and bias, probe pose noise, drawn
@@ -38,6 +39,7 @@ ENV_IDS = (
     "probegym/LesionSearch-v1",
     "probegym/ForceScan-v1",
     "probegym/BreastCompress-v1",
+    "probegym/BreastCompress-v2",
 )
 
 
@@ -79,6 +81,13 @@ def _register() -> None:
         gym.register(
             id="probegym/BreastCompress-v1",
             entry_point="envs.tasks.breast_compress_v1:BreastCompressV1Env",
+            max_episode_steps=_COMPRESS_STEPS,
+        )
+
+    if "probegym/BreastCompress-v2" not in gym.registry:
+        gym.register(
+            id="probegym/BreastCompress-v2",
+            entry_point="envs.tasks.breast_compress_v2:BreastCompressV2Env",
             max_episode_steps=_COMPRESS_STEPS,
         )
 

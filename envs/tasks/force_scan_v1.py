@@ -11,9 +11,9 @@ from gymnasium import spaces
 from numpy.typing import NDArray
 
 import tissue
-from envs.errors import EnvConfigError, check_positive, finite_number
 from envs.probe_env import StepState
 from envs.tasks.force_scan import ForceScanConfig, ForceScanEnv
+from envs.tasks.shaping import ShapedRewardConfig, action_change, check_non_negative
 
 #: v1's translation at |a| = 1: 2 mm a step (v0: 5 mm), so that a fresh policy's exploring
 #: motion (spread e^-1: about 0.7 mm a step) does not throw the force out of its 1-3 N band.
@@ -33,39 +33,21 @@ TILT_CAP = 9.0
 
 
 @dataclass(frozen=True)
-class ForceScanV1Config(ForceScanConfig):
+class ForceScanV1Config(ShapedRewardConfig, ForceScanConfig):
     """ForceScan-v1's settings: v0's (:class:`ForceScanConfig`, the task itself) and the
-    reward's.
+    reward's (:class:`envs.tasks.shaping.ShapedRewardConfig`; its ``progress_weight`` is w in
+    this task's potential, see the env's docstring).
 
     Attributes:
-        progress_weight: w in the potential Phi(s) = -w d(s) (see the env's docstring).
-        shaping_gamma: the gamma of the shaping term gamma Phi(s') - Phi(s) (1: see
-            :class:`envs.tasks.lesion_search_v1.LesionSearchV1Env` for why).
-        time_penalty: the ``time`` term's cost of every step (>= 0).
         bad_step_penalty: the ``bad_step`` term's cost of a step with the force out of its
             band or the tilt beyond its tolerance (>= 0).
-        smoothness_weight: the ``smoothness`` term's weight (>= 0).
-        success_reward: the ``success`` term on the step that succeeds (> 0).
-        failure_reward: the ``failure`` term on a failing last step (<= 0; v1's -10).
     """
 
-    failure_reward: float | None = -10.0
-    progress_weight: float = 5.0
-    shaping_gamma: float = 1.0
-    time_penalty: float = 0.01
     bad_step_penalty: float = 0.05
-    smoothness_weight: float = 0.02
-    success_reward: float = 10.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_positive(self, ("success_reward",))
-        if not (finite_number(self.shaping_gamma) and 0.0 < self.shaping_gamma <= 1.0):
-            raise EnvConfigError(f"shaping_gamma must lie in (0, 1]; got {self.shaping_gamma!r}")
-        for name in ("time_penalty", "bad_step_penalty", "smoothness_weight"):
-            value = getattr(self, name)
-            if not (finite_number(value) and value >= 0.0):
-                raise EnvConfigError(f"{name} must be a number >= 0; got {value!r}")
+        check_non_negative(self, ("bad_step_penalty",))
 
 
 class ForceScanV1Env(ForceScanEnv):
@@ -209,12 +191,11 @@ class ForceScanV1Env(ForceScanEnv):
         self._potential = potential
         low, high = cfg.force_band_n
         good = low <= normal <= high and self._tilt <= cfg.max_tilt_rad
-        change = float(np.mean((action - self._last_action) ** 2)) / 4.0
         return {
             "progress": shaping,
             "time": -cfg.time_penalty,
             "bad_step": 0.0 if good else -cfg.bad_step_penalty,
-            "smoothness": -cfg.smoothness_weight * min(1.0, change),
+            "smoothness": -cfg.smoothness_weight * action_change(action, self._last_action),
             "success": cfg.success_reward if success else 0.0,
             "failure": self.failure_reward() if failed else 0.0,
         }

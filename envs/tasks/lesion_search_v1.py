@@ -12,10 +12,10 @@ from gymnasium import spaces
 from numpy.typing import NDArray
 
 import tissue
-from envs.errors import EnvConfigError, check_positive, finite_number
 from envs.observations import LesionInImage
 from envs.probe_env import StepState
 from envs.tasks.lesion_search import LesionSearchConfig, LesionSearchEnv
+from envs.tasks.shaping import ShapedRewardConfig, action_change
 
 #: v1's action scale at |a| = 1: 2 mm and 0.02 rad a step (v0: 5 mm and 0.05 rad), so that
 #: a fresh policy's exploring motion (spread e^-1: about 0.7 mm a step) stays well inside
@@ -30,37 +30,10 @@ CENTRING_CAP = 2.0
 
 
 @dataclass(frozen=True)
-class LesionSearchV1Config(LesionSearchConfig):
+class LesionSearchV1Config(ShapedRewardConfig, LesionSearchConfig):
     """LesionSearch-v1's settings: v0's (:class:`LesionSearchConfig`, the task itself) and
-    the reward's.
-
-    Attributes:
-        progress_weight: w in the potential Phi(s) = -w d(s) (see the env's docstring).
-        shaping_gamma: the gamma of the shaping term gamma Phi(s') - Phi(s) (see the env's
-            docstring for why 1 and not the learner's 0.99).
-        time_penalty: the ``time`` term's cost of every step (>= 0).
-        smoothness_weight: the ``smoothness`` term's weight (>= 0).
-        success_reward: the ``success`` term on the step that succeeds (> 0).
-        failure_reward: the ``failure`` term on a failing last step (<= 0; v1's default -10,
-            on the scale of the success, not of the whole episode's penalties).
-    """
-
-    failure_reward: float | None = -10.0
-    progress_weight: float = 5.0
-    shaping_gamma: float = 1.0
-    time_penalty: float = 0.01
-    smoothness_weight: float = 0.02
-    success_reward: float = 10.0
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        check_positive(self, ("progress_weight", "success_reward"))
-        if not (finite_number(self.shaping_gamma) and 0.0 < self.shaping_gamma <= 1.0):
-            raise EnvConfigError(f"shaping_gamma must lie in (0, 1]; got {self.shaping_gamma!r}")
-        for name in ("time_penalty", "smoothness_weight"):
-            value = getattr(self, name)
-            if not (finite_number(value) and value >= 0.0):
-                raise EnvConfigError(f"{name} must be a number >= 0; got {value!r}")
+    the reward's (:class:`envs.tasks.shaping.ShapedRewardConfig`; its ``progress_weight``
+    is w in this task's potential, see the env's docstring)."""
 
 
 class LesionSearchV1Env(LesionSearchEnv):
@@ -222,11 +195,10 @@ class LesionSearchV1Env(LesionSearchEnv):
         potential = self.potential(lesion, normal)
         shaping = cfg.shaping_gamma * potential - self._potential
         self._potential = potential
-        change = float(np.mean((action - self._last_action) ** 2)) / 4.0
         return {
             "progress": shaping,
             "time": -cfg.time_penalty,
-            "smoothness": -cfg.smoothness_weight * min(1.0, change),
+            "smoothness": -cfg.smoothness_weight * action_change(action, self._last_action),
             "success": cfg.success_reward if success else 0.0,
             "failure": self.failure_reward() if failed else 0.0,
         }

@@ -4,7 +4,7 @@ demonstrations)."""
 from collections.abc import Callable
 from typing import Any
 
-from agents.learning.policies.compression import CompressionPolicy
+from agents.learning.policies.compression import CompressionPolicy, compression_v2_policy
 from agents.learning.policies.force_scan import ForceScanPolicy, force_scan_v1_policy
 from agents.learning.policies.lesion_search import LesionSearchPolicy, lesion_search_v1_policy
 from agents.learning.policies.random_policy import RandomPolicy
@@ -18,6 +18,7 @@ SCRIPTED_POLICIES: dict[str, Callable[[], Any]] = {
     "probegym/LesionSearch-v1": lesion_search_v1_policy,
     "probegym/ForceScan-v1": force_scan_v1_policy,
     "probegym/BreastCompress-v1": CompressionPolicy,
+    "probegym/BreastCompress-v2": compression_v2_policy,
 }
 
 __all__ = [
