@@ -81,8 +81,8 @@ class BreastCompressV2Env(BreastCompressEnv):
     | key | shape | meaning |
     | --- | --- | --- |
     | ``last_action`` | the action's | the last step's action (zeros after a reset) |
-    | ``press_offset`` | (3,) | the probe's position from its start, in the start's probe frame [m] |
-    | ``depth_error`` | (1,) | the lesion's depth in the image less the target depth [m]; 0 out of view |
+    | ``press_offset`` | (3,) | the probe's position from its start, start's probe frame [m] |
+    | ``depth_error`` | (1,) | the lesion's depth less the target depth [m]; 0 out of view |
     | ``hold`` | (1,) | the steps held in the band so far / the 25 that succeed |
 
     ``depth_error`` is what the policy must drive to 0 (positive: press further); ``hold``
