@@ -24,7 +24,6 @@ from numpy.typing import ArrayLike, NDArray
 from tissue.contact import make_contact_model
 from tissue.contact.base import ContactModel
 from tissue.contact.placement import RestSkin, first_contact_pose, radial_roll_rad
-from tissue.contact.registry import contact_class
 from tissue.contact.surface_points import SurfacePoints
 from tissue.contact.wrench_stiffness import wrench_stiffness
 from tissue.errors import MeshError, TissueInputError
@@ -94,7 +93,7 @@ class Tissue:
     def __init__(self, resolved: ResolvedTissue) -> None:
         self._resolved = resolved
         self._model: ContactModel = make_contact_model(
-            resolved.method,
+            resolved.contact_type,
             resolved.mesh,
             resolved.probe_shape,
             materials=resolved.materials,
@@ -422,9 +421,7 @@ class Tissue:
             materials=materials,
         )  # fmt: skip
         variant = replace(resolved, spec=spec, mesh=mesh, materials=materials, drawn_skin=drawn)
-        config, params = contact_class(resolved.method).settings_for_variant(
-            variant, mesh, materials
-        )
+        config, params = resolved.contact_type.settings_for_variant(variant, mesh, materials)
         return Tissue(replace(variant, config=config, params=params))
 
     def lesion_shift_limits_m(self) -> NDArray[np.float64]:

@@ -12,19 +12,22 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from tissue.contact.registry import contact_class, contact_method
+from tissue.contact.registry import contact_choice
 from tissue.contact.sleep import check_sleep_speed
 from tissue.errors import ConfigError, check_setting_names
 from tissue.fem.material import NeoHookean, TissueMaterials
 from tissue.mesh import CollisionSurface, TetMesh
 from tissue.probe import ProbeShape, parse_probe_spec
 from tissue.profile import PAPER_TISSUE_DT_S, Profile, check_tissue_dt
+
+if TYPE_CHECKING:
+    from tissue.contact.base import ContactModel
 
 #: ``TissueSpec(mesh=PUBLISHED_SCENE)`` loads the published scene from where the project
 #: looks for it (``PROBEGYM_PAPER_SCENE``, then ``shared/paper-scene`` beside the checkout).
@@ -45,7 +48,8 @@ class TissueSpec:
             set), or a :class:`tissue.mesh.TetMesh`.
         contact: a registered contact method (:func:`tissue.contact_methods`): ``penalty``,
             ``lm``, ``prescribed``, ``pbd`` or one registered with
-            :func:`tissue.register_contact`.
+            :func:`tissue.register_contact`; its name or its registered class (the spec
+            keeps the name here and the class as :attr:`contact_type`).
         profile: ``paper`` or ``robust`` (:mod:`tissue.profile`).
         tissue_dt: the tissue time step [s], in (0, 1] (the paper's,
             :data:`tissue.profile.PAPER_TISSUE_DT_S`).
@@ -79,10 +83,12 @@ class TissueSpec:
             the probe approaches. None (the default): it never sleeps, every step is solved.
             The environments use :data:`tissue.SLEEP_SPEED_M_S` (1e-6 m/s). Only how the
             tissue is stepped: no mesh or calibration depends on it.
+        contact_type: (not an argument) the registered strategy class ``contact`` names,
+            looked up once here; everything built from the spec takes it from here.
     """
 
     mesh: int | str | os.PathLike[str] | TetMesh = 1363
-    contact: str = "lm"
+    contact: str | type[ContactModel] = "lm"
     profile: str = "robust"
     tissue_dt: float = PAPER_TISSUE_DT_S
     young_pa: float | None = None
@@ -97,6 +103,7 @@ class TissueSpec:
     scene_lesion: int | None = None
     collision_edge_m: float | None = None
     sleep_speed_m_s: float | None = None
+    contact_type: type[ContactModel] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.collision_edge_m is not None:
@@ -111,8 +118,10 @@ class TissueSpec:
                 )
             object.__setattr__(self, "collision_edge_m", float(edge))
         object.__setattr__(self, "sleep_speed_m_s", check_sleep_speed(self.sleep_speed_m_s))
-        method = contact_method(self.contact)
+        contact_type = contact_choice(self.contact)
+        method = contact_type.name
         object.__setattr__(self, "contact", method)
+        object.__setattr__(self, "contact_type", contact_type)
         object.__setattr__(self, "profile", Profile.parse(self.profile).value)
         object.__setattr__(self, "tissue_dt", check_tissue_dt(self.tissue_dt))
         overrides = (self.young_pa, self.poisson, self.lesion_stiffness_ratio)
@@ -129,7 +138,7 @@ class TissueSpec:
                 )
         else:
             self.resolved_materials()  # validates the overrides now
-        expected = contact_class(method).params_type
+        expected = contact_type.params_type
         if self.contact_params is not None and not isinstance(self.contact_params, expected):
             raise ConfigError(
                 f"contact {method!r} takes contact_params of type {expected.__name__}; "
@@ -243,7 +252,8 @@ class ResolvedTissue:
 
     Attributes:
         spec: the spec it came from.
-        method: the contact method's registry name.
+        contact_type: the contact strategy's class (``spec.contact_type``; :attr:`method`
+            is its registry name).
         mesh: the tet mesh.
         materials: per-region materials.
         probe_shape: the probe's geometry.
@@ -255,13 +265,18 @@ class ResolvedTissue:
     """
 
     spec: TissueSpec
-    method: str
+    contact_type: type[ContactModel]
     mesh: TetMesh
     materials: TissueMaterials
     probe_shape: ProbeShape
     config: Any
     params: Any
     drawn_skin: CollisionSurface | None = None
+
+    @property
+    def method(self) -> str:
+        """The contact method's registry name."""
+        return self.contact_type.name
 
 
 def load_spec_mesh(spec: TissueSpec) -> TetMesh:
@@ -329,11 +344,11 @@ def resolve_spec(spec: TissueSpec, mesh: TetMesh | None = None) -> ResolvedTissu
         mesh: its mesh if already loaded (else :func:`load_spec_mesh`).
     """
     mesh = load_spec_mesh(spec) if mesh is None else mesh
-    method = contact_method(spec.contact)
     materials = spec.resolved_materials()
-    config, params = contact_class(method).settings_for(spec, mesh, materials)
+    contact_type = spec.contact_type
+    config, params = contact_type.settings_for(spec, mesh, materials)
     return ResolvedTissue(
-        spec, method, mesh, materials, spec.probe_shape(), config, params, drawn_skin(spec)
+        spec, contact_type, mesh, materials, spec.probe_shape(), config, params, drawn_skin(spec)
     )
 
 

@@ -27,6 +27,7 @@ def test_the_listing_matches_what_can_be_made(
         "probegym/LesionSearch-v1",
         "probegym/ForceScan-v1",
         "probegym/BreastCompress-v1",
+        "probegym/BreastCompress-v2",
     }
     for row in listing["environments"]:
         assert row["id"] in printed

@@ -143,3 +143,31 @@ def test_the_toy_runs_in_an_environment(toy: str) -> None:
         assert env.unwrapped.tissue.contact == toy
     finally:
         env.close()
+
+
+def test_a_spec_names_its_contact_once_and_the_build_goes_one_way(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The method is validated where the spec is made (its class kept as ``contact_type``),
+    and resolving the spec and building the model look nothing up again."""
+    import tissue.contact.registry as registry
+
+    looked_up: list[object] = []
+    lookup = registry.contact_method
+
+    def counted(value: object) -> str:
+        looked_up.append(value)
+        return lookup(value)
+
+    monkeypatch.setattr(registry, "contact_method", counted)
+    spec = tissue.TissueSpec(mesh=623, contact="LM")
+    assert looked_up == ["LM"]
+    assert (spec.contact, spec.contact_type) == ("lm", tissue.contact.LagrangeContact)
+    built = tissue.make_tissue(spec)
+    assert looked_up == ["LM"]  # resolved and built from spec.contact_type
+    assert built.resolved.contact_type is tissue.contact.LagrangeContact
+    assert (built.resolved.method, built.contact) == ("lm", "lm")
+    by_class = tissue.TissueSpec(mesh=623, contact=tissue.contact.PenaltyContact)
+    assert (by_class.contact, by_class.contact_type) == ("penalty", tissue.contact.PenaltyContact)
+    with pytest.raises(ConfigError, match="unknown contact method"):
+        tissue.TissueSpec(mesh=623, contact=StiffeningPenalty)  # a class not registered

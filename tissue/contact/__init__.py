@@ -17,6 +17,7 @@ from tissue.contact.penalty import PenaltyContact, PenaltyParams
 from tissue.contact.prescribed import PrescribedContact, PrescribedParams
 from tissue.contact.registry import (
     CONTACT_MODELS,
+    contact_choice,
     contact_class,
     contact_method,
     contact_methods,
@@ -27,12 +28,15 @@ from tissue.sim.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.threads import one_thread_below, thread_policy
 
 
-def make_contact_model(method: str, mesh, probe_shape, **kwargs: Any) -> ContactModel:
-    """Build the contact model registered as ``method`` (:func:`contact_methods`).
+def make_contact_model(
+    method: str | type[ContactModel], mesh, probe_shape, **kwargs: Any
+) -> ContactModel:
+    """Build the contact model registered as ``method`` (:func:`contact_methods`): its name,
+    or its class as a spec resolved it (``ResolvedTissue.contact_type``).
 
     Keyword arguments go to the model (``materials``, ``config``, ``params``).
     """
-    model_class = contact_class(method)
+    model_class = contact_choice(method)
     thread_policy()
     # Built under the step's thread rule, as TissueSimulator is (tissue.threads): a small
     # tissue's build then gives the same bits on any number of threads.
@@ -50,6 +54,7 @@ __all__ = [
     "PenaltyParams",
     "PrescribedContact",
     "PrescribedParams",
+    "contact_choice",
     "contact_class",
     "contact_method",
     "contact_methods",

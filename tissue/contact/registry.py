@@ -85,5 +85,16 @@ def contact_method(value: object) -> str:
 
 
 def contact_class(value: object) -> type[ContactModel]:
-    """The strategy class registered as ``value``."""
+    """The strategy class registered as ``value`` (a name)."""
     return CONTACT_MODELS[contact_method(value)]
+
+
+def contact_choice(value: object) -> type[ContactModel]:
+    """``value``, a registered method's name or its class, as the class: the one place a
+    spec's ``contact`` is validated (:class:`tissue.TissueSpec`); an error listing the
+    registered names."""
+    if isinstance(value, type):
+        registered = CONTACT_MODELS.get(str(getattr(value, "name", "")))
+        if registered is not None and registered is value:
+            return registered
+    return contact_class(value)
