@@ -238,8 +238,10 @@ def _build_parser() -> argparse.ArgumentParser:
         "study", help="the compression study of Tagliabue et al. 2020: tables, figures, report"
     )
     from agents.lab.study.command import add_study_arguments
+    from agents.learning.transfer.command import add_transfer_arguments
 
     add_study_arguments(study)
+    add_transfer_arguments(study)
 
     hard = commands.add_parser(
         "hard-cases", help="the hard-case catalogue: which methods stay stable where"
@@ -459,6 +461,10 @@ def _run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         from agents.lab.compress_command import run_compress_command
 
         return run_compress_command(args)
+    if args.command == "study" and args.transfer:
+        from agents.learning.transfer.command import run_transfer_command
+
+        return run_transfer_command(args)
     if args.command == "study":
         from agents.lab.study.command import run_study_command
 

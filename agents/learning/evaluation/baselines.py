@@ -48,8 +48,8 @@ def run_record(path: Path, episodes: int, seed: int) -> dict[str, Any]:
     folder, model = training_folder(path)
     config = read_config(folder)
     records = _held_out(str(config["env_id"]), model, episodes, seed)
-    steps = _checkpoint_steps(model) or _trained_steps(folder)
-    wall = _tensorboard_wall_s(folder, steps) or _wall_s(folder)
+    steps = _checkpoint_steps(model) or trained_steps(folder)
+    wall = training_wall_s(folder, steps)
     defaults = _defaults(config)
     return _record(config["env_id"], config["algo"], config["algo"], config["seed"], records) | {
         "steps": steps,
@@ -126,11 +126,19 @@ def _checkpoint_steps(model: Path) -> int | None:
     return None
 
 
-def _trained_steps(folder: Path) -> int:
+def trained_steps(folder: Path) -> int:
+    """The steps of a ``probegym train`` folder's latest checkpoint (0 without any)."""
     steps = [
         int(path.stem.split("_")[-2]) for path in (folder / "checkpoints").glob("model_*_steps.zip")
     ]
     return max(steps, default=0)
+
+
+def training_wall_s(folder: Path, steps: int) -> float | None:
+    """A training run's wall time up to ``steps`` [s]: the spans of its TensorBoard event
+    files (every process that trained it, resumptions included), else its monitor files'
+    latest episode end; None without either."""
+    return _tensorboard_wall_s(folder, steps) or _wall_s(folder)
 
 
 def _tensorboard_wall_s(folder: Path, steps: int) -> float | None:

@@ -34,14 +34,16 @@ def add_train_parser(commands: Any) -> None:
     )
     parser.add_argument("--mesh", default="1363", help="phantom level or mesh file (default 1363)")
     parser.add_argument("--profile", default="robust", help="paper or robust (default robust)")
-    parser.add_argument("--steps", type=_count, default=300_000, help="env steps (default 300k)")
-    parser.add_argument("--n-envs", type=_count, default=2, help="parallel envs (default 2)")
+    parser.add_argument(
+        "--steps", type=step_count, default=300_000, help="env steps (default 300k)"
+    )
+    parser.add_argument("--n-envs", type=step_count, default=2, help="parallel envs (default 2)")
     parser.add_argument("--seed", type=seed_list, default=None, help="seed (default 0)")
     parser.add_argument("--seeds", type=seed_list, default=None, help="several seeds: 0,1,2")
     parser.add_argument("--out", type=Path, default=None, help="default probegym-out/train/...")
-    parser.add_argument("--eval-every", type=_count, default=10_000, help="env steps")
-    parser.add_argument("--eval-episodes", type=_count, default=20, help="per evaluation")
-    parser.add_argument("--checkpoint-every", type=_count, default=20_000, help="env steps")
+    parser.add_argument("--eval-every", type=step_count, default=10_000, help="env steps")
+    parser.add_argument("--eval-episodes", type=step_count, default=20, help="per evaluation")
+    parser.add_argument("--checkpoint-every", type=step_count, default=20_000, help="env steps")
     parser.add_argument("--no-normalize", action="store_true", help="do not normalise observations")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument(
@@ -109,7 +111,7 @@ def run_train(args: argparse.Namespace) -> int:
         for (algo, contact, seed), folder in zip(runs, folders, strict=True)
     ]
     if args.ray is not None:
-        finals = _on_ray(settings, args.ray, args.command_line)
+        finals = train_on_ray(settings, args.ray, args.command_line)
     else:
         warning = cores_warning(args.n_envs, os.cpu_count())
         if warning is not None:
@@ -185,7 +187,7 @@ def _train_quietly(settings: TrainSettings, command: str) -> str:
     return str(train(settings, command=command))
 
 
-def _on_ray(settings: list[TrainSettings], address: str, command: str) -> list[Path]:
+def train_on_ray(settings: list[TrainSettings], address: str, command: str) -> list[Path]:
     """Every run as a Ray task (each asks for ``n_envs`` CPUs); their final models."""
     from agents.lab.study.ray_backend import ray_submitter
 
@@ -223,7 +225,8 @@ def _summarise(settings: list[TrainSettings], finals: list[Path], out: Path) -> 
     write_json({"runs": rows}, out / "summary.json", indent=1)
 
 
-def _count(value: str) -> int:
+def step_count(value: str) -> int:
+    """An option's step count: a whole number >= 1, ``300000`` or ``300k``."""
     text = value.replace("_", "").replace(",", "")
     if text.lower().endswith("k") and text[:-1].isdigit():
         return int(text[:-1]) * 1000
