@@ -21,7 +21,7 @@ from typing import Any
 
 from tissue import ConfigError
 
-DEFAULT_ENV = "probegym/BreastCompress-v1"
+DEFAULT_ENV = "probegym/BreastCompress-v2"
 #: The mesh levels the viewer offers beside the one given (finer ones step too slowly to
 #: drive by hand on a laptop; any level or mesh file can be given with --mesh).
 VIEW_LEVELS = (623, 1363, 2539, 4126)

@@ -42,7 +42,7 @@ from envs.studio.protocol import (
 )
 
 ROOT = Path(__file__).resolve().parents[2]
-ENV_ID = "probegym/BreastCompress-v1"
+ENV_ID = "probegym/BreastCompress-v2"
 LOOPBACK_ADDRESSES = ("127.0.0.1", "::1")
 #: How far the browser test presses the probe in [mm] (about 3 N on the 623-tet phantom).
 PRESS_MM = 15.0
