@@ -18,11 +18,15 @@ from envs.tasks.breast_compress import BreastCompressEnv
 from envs.tasks.breast_compress_v1 import BreastCompressV1Config
 from envs.tasks.shaping import ShapedRewardConfig, action_change
 
-#: v2's action scale at |a| = 1: 2 mm and 0.02 rad a step (v0 and v1: 5 mm and 0.05 rad),
-#: so that a fresh policy's exploring motion (spread e^-1: about 0.7 mm a step) stays
-#: within the 1 mm depth band. ``max_translation_m`` / ``max_rotation_rad`` still set it.
-V2_MAX_TRANSLATION_M = 0.002
-V2_MAX_ROTATION_RAD = 0.02
+#: v2's action scale at |a| = 1: 3 mm and 0.03 rad a step (v0 and v1: 5 mm and 0.05 rad).
+#: A fresh policy's exploring motion (spread e^-1) is then about 1.1 mm of probe a step, which
+#: moves the lesion 0.4-1 times that (the scripted press takes 6-16 mm of probe for the 4-7 mm
+#: of lesion asked): about the 1 mm depth band, not 2-5 times it as at 5 mm. At 2 mm a step,
+#: uniformly random actions stayed in the band for the 25-step hold by chance in 4 of 50
+#: held-out episodes (over the 5 % a chance baseline may reach); at 3 mm in 1 of 50.
+#: ``max_translation_m`` / ``max_rotation_rad`` still set it.
+V2_MAX_TRANSLATION_M = 0.003
+V2_MAX_ROTATION_RAD = 0.03
 #: The depth error that counts as one unit of the potential's d(s) [m], and its cap in units
 #: (2: 10 mm, beyond the 7 mm most asked).
 DEPTH_UNIT_M = 0.005
@@ -54,7 +58,7 @@ class BreastCompressV2Env(BreastCompressEnv):
     to 1 a step for the depth error, the lesion's offset from the centre line and the force,
     and -(251) for a failing episode; so pressing harder than is safe cost as much as any
     episode could, and a learner met the 1 mm band only by chance at 5 mm a step at full
-    action (a fresh policy's exploring motion: 1.8 mm a step). PPO learned it on two seeds
+    action (a fresh policy's exploring motion: 1.8 mm of probe a step). PPO learned it on two seeds
     of three by 200k steps, and the third stayed under 30 %.
 
     ## Action space
@@ -64,11 +68,12 @@ class BreastCompressV2Env(BreastCompressEnv):
 
     | index | meaning | at +1 |
     | --- | --- | --- |
-    | 0, 1, 2 | move the probe's target along x, y, z | 2 mm per step |
-    | 3, 4, 5 | turn it about x, y, z | 0.02 rad per step |
+    | 0, 1, 2 | move the probe's target along x, y, z | 3 mm per step |
+    | 3, 4, 5 | turn it about x, y, z | 0.03 rad per step |
 
-    (``max_translation_m``, ``max_rotation_rad``: v1's 5 mm and 0.05 rad were 2.5 times
-    these; the compression asked takes the probe 13-27 mm in, 7-14 steps at full action).
+    (``max_translation_m``, ``max_rotation_rad``: v1's were 5 mm and 0.05 rad; the press
+    asked takes the probe 6-16 mm in, 2-6 steps at full action; at 2 mm a step, random
+    actions held the band by chance in 8 % of the held-out episodes).
     The controller and the target's workspace are v1's. ``control_mode="joint_delta"``: one
     number per joint, as v1.
 

@@ -45,8 +45,8 @@ def test_checkers_pass_and_the_task_is_v1s() -> None:
     for name in v1.__dataclass_fields__:
         if name != "failure_reward":
             assert getattr(unwrapped.task_config, name) == getattr(v1, name), name
-    assert unwrapped.action_config.max_translation_m == 0.002
-    assert unwrapped.action_config.max_rotation_rad == 0.02
+    assert unwrapped.action_config.max_translation_m == 0.003
+    assert unwrapped.action_config.max_rotation_rad == 0.03
     spec = type(unwrapped).__doc__ or ""
     for words in ("- v2: the reward", "``hold``", "``depth_error``", "Phi(s) = -w d(s)"):
         assert words in spec
@@ -136,9 +136,9 @@ def test_the_press_is_observed() -> None:
         else:
             assert observation["depth_error"][0] == 0.0
     assert seen
-    # 8 steps of 2 mm: the probe went in (+y) by several millimetres, not sideways.
+    # 8 steps of 3 mm: the probe went in (+y) by several millimetres, not sideways.
     offset = observation["press_offset"]
-    assert 0.005 < offset[1] <= 0.016 + 1e-3 and abs(offset[0]) < 0.002
+    assert 0.008 < offset[1] <= 0.024 + 1e-3 and abs(offset[0]) < 0.002
     env.close()
 
 
