@@ -184,7 +184,7 @@ class TissueSpec:
     @classmethod
     def from_overrides(cls, **overrides: Any) -> TissueSpec:
         """Build from keyword arguments, rejecting unknown names with the valid ones listed."""
-        check_setting_names(overrides, (f.name for f in fields(cls)), "tissue")
+        check_setting_names(overrides, (f.name for f in fields(cls) if f.init), "tissue")
         return cls(**overrides)
 
     def mesh_kind(self) -> str:
