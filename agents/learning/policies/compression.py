@@ -48,7 +48,7 @@ class CompressionPolicy:
 
 
 def compression_v2_policy() -> CompressionPolicy:
-    """The scripted policy for ``probegym/BreastCompress-v2`` (2 mm a step)."""
+    """The scripted policy for ``probegym/BreastCompress-v2`` (3 mm a step)."""
     from envs.tasks.breast_compress_v2 import V2_MAX_TRANSLATION_M
 
     return CompressionPolicy.for_scale(V2_MAX_TRANSLATION_M)
