@@ -212,8 +212,9 @@ def _compile_the_default_scene() -> None:
     import gymnasium as gym
 
     import envs  # noqa: F401 - registers the ids
+    from agents.view import DEFAULT_ENV
 
-    env = gym.make("probegym/BreastCompress-v0", mesh=623, image=True)
+    env = gym.make(DEFAULT_ENV, mesh=623, image=True)
     env.reset(seed=0)
     env.step(np.zeros(6, dtype=np.float32))
     env.close()
