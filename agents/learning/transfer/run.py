@@ -18,8 +18,10 @@ study is never evaluated again; one that cannot be read is reported and evaluate
 from __future__ import annotations
 
 import json
+import multiprocessing
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -117,18 +119,71 @@ def run_transfer(
                 f"seed {s.seed}, {s.steps:,} steps")  # fmt: skip
             train(s, command=command, log=log)
     outcome.trained_now = len(pending)
+    cells: list[tuple[TrainSettings, Configuration, Configuration, Path]] = []
     for s in settings:
         trained_on = Configuration(str(s.env_kwargs["contact"]), int(s.env_kwargs["mesh"]))
-        for on in spec.evaluate:
-            folder = cell_folder(out, s.env_id, trained_on, s.seed, on)
-            record = _finished_cell(folder, spec, s, on, outcome)
-            if record is None:
-                log(f"evaluating {s.env_id} {trained_on.label}-seed{s.seed} on {on.label}")
-                record = evaluate_cell(spec, s, trained_on, on, folder)
-                outcome.evaluated_now += 1
-            outcome.records.append(record)
+        cells.extend(
+            (s, trained_on, on, cell_folder(out, s.env_id, trained_on, s.seed, on))
+            for on in spec.evaluate
+        )
+    records: list[dict[str, Any] | None] = [
+        _finished_cell(folder, spec, s, on, outcome) for s, _, on, folder in cells
+    ]
+    todo = [i for i, record in enumerate(records) if record is None]
+    for i, record in _evaluate_cells(spec, cells, todo, log):
+        records[i] = record
+        outcome.evaluated_now += 1
+    outcome.records = [record for record in records if record is not None]
     write_report(spec, outcome.records, out, command)
     return outcome
+
+
+def _evaluate_cells(
+    spec: TransferSpec,
+    cells: list[tuple[TrainSettings, Configuration, Configuration, Path]],
+    todo: list[int],
+    log: Callable[[str], Any],
+) -> Iterator[tuple[int, dict[str, Any]]]:
+    """Evaluate the cells ``todo`` (indices into ``cells``), ``spec.n_envs`` at a time in
+    spawned processes (one per core, as training's workers; numba's OpenMP layer forbids
+    fork); yields (index, record) as each finishes. A cell that fails does not stop the
+    others: the first failure is raised once every cell has run, the finished cells kept."""
+    if not todo:
+        return
+
+    def label(i: int) -> str:
+        s, trained_on, on, _ = cells[i]
+        return f"{s.env_id} {trained_on.label}-seed{s.seed} on {on.label}"
+
+    if spec.n_envs <= 1 or len(todo) == 1:
+        for i in todo:
+            log(f"evaluating {label(i)}")
+            yield i, evaluate_cell(spec, *cells[i])
+        return
+    failure: BaseException | None = None
+    context = multiprocessing.get_context("spawn")
+    pool = ProcessPoolExecutor(spec.n_envs, mp_context=context, initializer=_one_torch_thread)
+    with pool:
+        futures = {pool.submit(evaluate_cell, spec, *cells[i]): i for i in todo}
+        for future in as_completed(futures):
+            i = futures[future]
+            try:
+                record = future.result()
+            except Exception as error:  # reported once the others have finished
+                log(f"evaluating {label(i)} failed: {error!r}")
+                failure = failure or error
+                continue
+            log(f"evaluated {label(i)}: {record['successes']}/{record['episodes']}")
+            yield i, record
+    if failure is not None:
+        raise failure
+
+
+def _one_torch_thread() -> None:
+    """A cell worker's networks run on one thread: the workers have the cores."""
+    import torch
+
+    torch.set_num_threads(1)
 
 
 def _trained(settings: TrainSettings) -> bool:
