@@ -164,6 +164,10 @@ class PenaltyTerm:
         # Augmented-Lagrangian force offsets per surface point [N] (zero: plain springs).
         self.offsets = np.zeros(surface.count)
         self._offsets_version = 0
+        # The springs' forces per surface point at the end of the last two committed steps
+        # [N] (None: not known yet), the offsets' predictor (predict_offsets).
+        self._ended: NDArray[np.float64] | None = None
+        self._ended_before: NDArray[np.float64] | None = None
 
     @property
     def stiffness(self) -> float:
@@ -195,20 +199,55 @@ class PenaltyTerm:
         self._offsets_version += 1
         return float(max(0.0, depth.max())) if depth.size else 0.0
 
+    def predict_offsets(self, reach_m: float) -> None:
+        """Before a step's first solve: offsets <- max(0, 2 f_n - f_(n-1)), the springs'
+        forces at the end of the last two committed steps (:meth:`record_forces`) carried
+        on linearly, and k raised for them as :meth:`augment` raises it (``reach_m`` [m]).
+
+        The augmentation's rounds end only where the offsets carry the step's forces to
+        within the force tolerance: in a steady motion the forces change by a few percent
+        a step, so offsets kept from the last step fail that test and cost a re-solve every
+        step; carried on, they pass it in the first solve. A wrong prediction (a motion
+        reversed) costs what a kept offset costs, a re-solve; the rounds' tests, and so
+        the step's accuracy, are unchanged. Nothing is predicted before two steps ended."""
+        if self._ended is None or self._ended_before is None:
+            return
+        np.maximum(2.0 * self._ended - self._ended_before, 0.0, out=self.offsets)
+        self._raised_stiffness = float(self.offsets.max(initial=0.0)) / reach_m
+        self._offsets_version += 1
+
+    def record_forces(self, positions: NDArray[np.float64]) -> None:
+        """After a committed step ending at ``positions``: its springs' forces per point
+        (for :meth:`predict_offsets`)."""
+        self.evaluate(positions)
+        ended = np.zeros(self.surface.count)
+        ended[self.last_contacts.points] = self.last_magnitudes
+        self._ended_before, self._ended = self._ended, ended
+
     def release(self) -> None:
-        """Plain springs again: no offsets, k = k_s (a reset)."""
+        """Plain springs again: no offsets, k = k_s, no forces recorded (a reset)."""
         self.offsets[:] = 0.0
         self._raised_stiffness = 0.0
+        self._ended = self._ended_before = None
         self._offsets_version += 1
 
     def state(self) -> dict[str, Any]:
-        """The augmentation's state (copied): the offsets [N] and the raised k [N/m]."""
-        return {"offsets": self.offsets.copy(), "raised_stiffness": self._raised_stiffness}
+        """The augmentation's state (copied): the offsets [N], the raised k [N/m] and the
+        forces recorded for the predictor [N]."""
+        return {
+            "offsets": self.offsets.copy(),
+            "raised_stiffness": self._raised_stiffness,
+            "ended": None if self._ended is None else self._ended.copy(),
+            "ended_before": None if self._ended_before is None else self._ended_before.copy(),
+        }
 
     def set_state(self, state: dict[str, Any]) -> None:
         """Adopt a :meth:`state`."""
         self.offsets[:] = state["offsets"]
         self._raised_stiffness = float(state["raised_stiffness"])
+        ended, before = state.get("ended"), state.get("ended_before")
+        self._ended = None if ended is None else ended.copy()
+        self._ended_before = None if before is None else before.copy()
         self._offsets_version += 1
 
     def force_change(self, positions: NDArray[np.float64]) -> float:
@@ -407,13 +446,18 @@ def augmented_step(
     force_tolerance: float = FORCE_TOLERANCE,
 ) -> tuple[StepResult, int]:
     """One step of ``dt`` [s] of ``sim`` (its prescribed set and node frames included) with
-    the springs of ``term``, committed: :func:`augmented_solve`, then
-    :meth:`TissueSimulator.commit`. Returns the committed step and the augmentations made."""
+    the springs of ``term``, committed: the offsets predicted
+    (:meth:`PenaltyTerm.predict_offsets`), :func:`augmented_solve`,
+    :meth:`TissueSimulator.commit`, the step's forces recorded for the next prediction.
+    Returns the committed step and the augmentations made."""
     started = time.perf_counter()
+    term.predict_offsets(tolerance_m)
     outcome, rounds = augmented_solve(
         sim, term, dt, tolerance_m, max_augmentations, force_tolerance
     )
-    return sim.commit(outcome, dt, started), rounds
+    result = sim.commit(outcome, dt, started)
+    term.record_forces(sim.positions)
+    return result, rounds
 
 
 def augmented_solve(

@@ -322,8 +322,10 @@ class PrescribedContact(FEContactModel):
             result = self.sim.step(dt=h)
         elif settled:
             started = time.perf_counter()
+            self._guard.predict_offsets(self.params.skin_guard_tolerance_m)
             outcome, guard_rounds, set_rounds = self._settled_step(h, planes)
             result = self.sim.commit(outcome, h, started)
+            self._guard.record_forces(self.sim.positions)
         else:
             result, guard_rounds = augmented_step(
                 self.sim, self._guard, h, self.params.skin_guard_tolerance_m, _GUARD_ROUNDS
