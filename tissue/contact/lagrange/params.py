@@ -52,10 +52,15 @@ class LagrangeParams:
         keep_factorization_unknowns: (robust mode) systems with at least this many unknowns
             (3 x nodes) keep a single-precision factorisation F across Newton iterations and
             steps (CG preconditioned by F, compliance W~ = H F^-1 H^T); smaller ones
-            refactorise every iteration. Below a few hundred unknowns refactorising costs
-            the same or less; from the 1,363-tet phantom level (834 unknowns) up keeping
-            wins, by nearly a factor of two from a few thousand unknowns up. 600 sits between
-            the two coarsest phantom levels (417 and 834 unknowns), away from both.
+            refactorise every iteration. What a refactorisation costs grows with the
+            contact's compliance columns, one solve each: on the environments' 2 mm skin
+            (about 100 candidate points under the probe) keeping doubles BreastCompress's
+            LM rate at the coarsest phantom level (623 tets, 417 unknowns: 72 -> 148 steps/s
+            pressing, 109 -> 207 exploring), while on the paper's 512-vertex skin it costs
+            a steady press a fifth there (219 -> 173) and gains an exploring step an eighth
+            (242 -> 272). From 1,363 tets (834 unknowns) up keeping wins on either skin, by
+            nearly a factor of two from a few thousand unknowns up. 400 keeps every phantom
+            level; only small test blocks refactorise.
         kept_projected_iterations: (robust mode, kept factorisation, quasi-static) Newton
             iterations of a step on the projected (PSD) tangent before the exact one with
             the contact terms is taken. A change of tangent costs a refactorisation (F must
@@ -115,7 +120,7 @@ class LagrangeParams:
     max_response_iterations: int = 4
     stalled_penetration_m: float = 1e-6
     stalled_iterations: int = 3
-    keep_factorization_unknowns: int = 600
+    keep_factorization_unknowns: int = 400
     kept_projected_iterations: int = 6
     augmentation_stiffnesses: tuple[float, ...] = (1.0, 100.0)
     refresh_after_missed_rounds: int = 2
