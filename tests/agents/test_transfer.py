@@ -80,8 +80,19 @@ def test_the_matrix_the_front_and_the_conclusions_follow_the_records() -> None:
     assert points["lm@623"]["own_success"] == 0.9
     found = " ".join(conclusions(spec, matrix, list(points.values())))
     assert "Best buy: training on lm@623 (2.0 min)" in found  # penalty's 50 % is not within 10
-    assert "penalty@623 on lm@4126 (50 % against 100 %)" in found
+    assert "95 % interval 60-98 %" in found  # 9 of 10 episodes, Wilson
+    # 5 of 10 against 10 of 10: Fisher's exact test, one-sided, p = 0.016.
+    assert "Transfer breaks" in found
+    assert "penalty@623 on lm@4126 (50 % against 100 %, p = 0.02)" in found
+    assert "cannot tell" not in found
     assert "lm@623 on" not in found  # LM's policy keeps its success everywhere
+    # 6 of 10 against 9 of 10: 30 points down, but p = 0.15: reported as not told from chance.
+    records[4] = _record("lm@623", "lm@623", 9, 120.0)
+    records[3] = _record("lm@623", "penalty@623", 6, 120.0)
+    found = " ".join(conclusions(spec, success_matrix(spec, records), list(points.values())))
+    assert "cannot tell from chance" in found
+    assert "lm@623 on penalty@623 (60 % against 90 %" in found
+    assert "lm@623 on penalty@623" not in found.split("cannot tell")[0]
     # A cheaper configuration as good as the best is the best buy, and dominates.
     records[2] = _record("penalty@623", "lm@4126", 9, 60.0)
     points = {p["train"]: p for p in reference_points(spec, records)}

@@ -11,11 +11,18 @@ from typing import Any
 
 import numpy as np
 
+from agents.learning.evaluation.report import wilson_interval
 from agents.learning.transfer.spec import TransferSpec, short_name
 from agents.outputs import write_json
 
-#: A cell "breaks" where its success falls this far below the policy's own configuration's.
+#: A cell "breaks" where its success falls this far below the policy's own configuration's
+#: and the drop is significant (below).
 BREAK_DROP = 0.2
+#: Fisher's exact test (one-sided: fewer successes than on the policy's own configuration)
+#: at this level: with 20 episodes a cell, 75 % against 50 % is not told from chance
+#: (p = 0.10), 95 % against 60 % is (p = 0.01). The test treats the two cells' episodes as
+#: independent samples; they share their seeds, so it is conservative.
+BREAK_P = 0.05
 #: The best buy: the cheapest training whose reference success is within this of the best.
 BEST_BUY_MARGIN = 0.1
 
@@ -55,19 +62,25 @@ def write_report(
 
 
 def success_matrix(spec: TransferSpec, records: list[dict[str, Any]]) -> dict[str, Any]:
-    """Rows: training configurations; columns: evaluation configurations; each the success
-    over every seed's held-out episodes (successes / episodes), NaN where not evaluated."""
+    """Rows: training configurations; columns: evaluation configurations. ``values``: each
+    cell's success over every seed's held-out episodes (successes / episodes), NaN where not
+    evaluated; ``successes`` and ``episodes``: the counts behind it (0 where not evaluated);
+    all of shape (rows, columns)."""
     rows = [c.label for c in spec.train]
     columns = [c.label for c in spec.evaluate]
-    values = np.full((len(rows), len(columns)), np.nan)
+    successes = np.zeros((len(rows), len(columns)), dtype=int)
+    episodes = np.zeros((len(rows), len(columns)), dtype=int)
     for i, row in enumerate(rows):
         for j, column in enumerate(columns):
             cells = [r for r in records if r["train"] == row and r["evaluate"] == column]
-            if cells:
-                values[i, j] = sum(r["successes"] for r in cells) / sum(
-                    r["episodes"] for r in cells
-                )
-    return {"rows": rows, "columns": columns, "values": values}
+            successes[i, j] = sum(r["successes"] for r in cells)
+            episodes[i, j] = sum(r["episodes"] for r in cells)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        values = np.where(episodes > 0, successes / np.maximum(episodes, 1), np.nan)
+    return {
+        "rows": rows, "columns": columns, "values": values,
+        "successes": successes, "episodes": episodes,
+    }  # fmt: skip
 
 
 def reference_points(spec: TransferSpec, records: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -114,39 +127,66 @@ def reference_points(spec: TransferSpec, records: list[dict[str, Any]]) -> list[
 def conclusions(
     spec: TransferSpec, matrix: dict[str, Any], points: list[dict[str, Any]]
 ) -> list[str]:
-    """The section's findings, in words: the best buy, where transfer breaks, the best."""
+    """The section's findings, in words: the best buy, where transfer breaks (a drop of
+    more than ``BREAK_DROP`` that Fisher's exact test tells from chance at ``BREAK_P``), the
+    drops that the episodes cannot tell from chance, and what was not learned."""
+    from scipy.stats import fisher_exact
+
     found = []
     timed = [p for p in points if p["wall_s"] is not None]
     if timed:
         best = max(p["reference_success"] for p in timed)
         good = [p for p in timed if p["reference_success"] >= best - BEST_BUY_MARGIN]
         buy = min(good, key=lambda p: p["wall_s"])
+        column = matrix["columns"].index(spec.reference.label)
+        row = matrix["rows"].index(buy["train"])
+        low, high = wilson_interval(
+            int(matrix["successes"][row, column]), int(matrix["episodes"][row, column])
+        )
         found.append(
             f"Best buy: training on {buy['train']} ({buy['wall_s'] / 60:.1f} min) succeeds in "
             f"{100 * buy['reference_success']:.0f} % of the reference's ({spec.reference.label}) "
-            f"episodes, within {100 * BEST_BUY_MARGIN:.0f} points of the best training "
-            f"configuration's {100 * best:.0f} %."
+            f"episodes (95 % interval {100 * low:.0f}-{100 * high:.0f} %), within "
+            f"{100 * BEST_BUY_MARGIN:.0f} points of the best training configuration's "
+            f"{100 * best:.0f} %."
         )
-    breaks = []
+    breaks: list[str] = []
+    unclear: list[str] = []
     rows, columns, values = matrix["rows"], matrix["columns"], matrix["values"]
+    wins, tries = matrix["successes"], matrix["episodes"]
     for i, row in enumerate(rows):
         if row not in columns:
             continue
-        own = values[i, columns.index(row)]
+        o = columns.index(row)
+        own = values[i, o]
         for j, column in enumerate(columns):
-            if np.isfinite(own) and np.isfinite(values[i, j]) and values[i, j] < own - BREAK_DROP:
-                breaks.append(
-                    f"{row} on {column} ({100 * values[i, j]:.0f} % against {100 * own:.0f} %)"
+            if not (np.isfinite(own) and np.isfinite(values[i, j])):
+                continue
+            if values[i, j] < own - BREAK_DROP:
+                table = [
+                    [int(wins[i, o]), int(tries[i, o] - wins[i, o])],
+                    [int(wins[i, j]), int(tries[i, j] - wins[i, j])],
+                ]
+                p = float(fisher_exact(table, alternative="greater").pvalue)
+                words = (
+                    f"{row} on {column} ({100 * values[i, j]:.0f} % against {100 * own:.0f} %, "
+                    f"p = {p:.2f})"
                 )
+                (breaks if p < BREAK_P else unclear).append(words)
     if breaks:
         found.append(
             f"Transfer breaks (success more than {100 * BREAK_DROP:.0f} points under the policy's "
-            f"own configuration's) for: {'; '.join(breaks)}."
+            f"own configuration's, Fisher's exact test p < {BREAK_P}) for: {'; '.join(breaks)}."
         )
     else:
         found.append(
-            f"Transfer holds: no policy loses more than {100 * BREAK_DROP:.0f} points of success "
-            "between its own configuration and any other evaluated."
+            f"Transfer holds: no policy loses significantly more than {100 * BREAK_DROP:.0f} "
+            "points of success between its own configuration and any other evaluated."
+        )
+    if unclear:
+        found.append(
+            f"Drops of more than {100 * BREAK_DROP:.0f} points that these episodes cannot tell "
+            f"from chance (p >= {BREAK_P}; more episodes or seeds would): {'; '.join(unclear)}."
         )
     failing = [
         p["train"] for p in points if p["own_success"] is not None and p["own_success"] < 0.5
@@ -248,7 +288,7 @@ def _matrix_figure(env_id: str, matrix: dict[str, Any], path: Path) -> Path:
     fig.colorbar(image, ax=ax, label="held-out success")
     ax.set_title(f"{short_name(env_id)}: success, trained on x evaluated on")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
     return path
 

@@ -21,9 +21,10 @@ QUICK_CONFIGURATIONS = tuple(
 REFERENCE = "lm@4126"
 #: Environment steps per training run, per task: the quick study's, sized so that the whole
 #: study (16 training runs, 144 cells of 20 episodes) finishes in about two hours on 2 cores
-#: (docs/study.md). BreastCompress-v2 reaches 85-100 % in 10k steps at 623 tets
-#: (docs/study.md's first run); LesionSearch-v1's PPO seeds pass 80 % at 20k-60k on LM at
-#: 1,303 tets (docs/baselines.md), so its quick budget trains some configurations short.
+#: (docs/study.md: 2 h 22 min, measured). With them every configuration reaches 85-100 % on
+#: BreastCompress-v2 and 75-95 % on LesionSearch-v1 on its own configuration; LesionSearch's
+#: PPO seeds pass 80 % at 20k-60k on LM at 1,303 tets (docs/baselines.md), so its quick
+#: budget trains some configurations short.
 QUICK_STEPS = {"probegym/BreastCompress-v2": 10_240, "probegym/LesionSearch-v1": 24_576}
 #: And the full study's (the baselines' budgets).
 FULL_STEPS = {
