@@ -28,6 +28,7 @@ import signal
 import socket
 import sys
 import threading
+import time
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -216,7 +217,23 @@ def launch_web(
         with contextlib.suppress(BaseException):  # the viewer's own error is raised below
             handle.close()
         raise result
+    _wait_until_listening(result[1], BIND_TIMEOUT_S)
     return Served(handle, result[0], result[1])
+
+
+def _wait_until_listening(port: int, timeout_s: float) -> None:
+    """Return once this process listens on ``port``: the viewer binds in its constructor
+    and listens moments later on its own thread, so an address printed (or a check of what
+    listens) right after binding could come before the socket accepts. Where ``/proc`` cannot
+    be read it returns at once; past ``timeout_s`` it returns too (the viewer's own errors
+    surface through its handle)."""
+    if not os.path.isdir("/proc/self/fd"):
+        return
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if any(listening == port for _, listening in listening_sockets()):
+            return
+        time.sleep(0.05)
 
 
 def native_viewer_problem() -> str:

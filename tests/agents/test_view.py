@@ -426,6 +426,7 @@ _STATS = re.compile(
 
 
 @pytest.mark.slow
+@pytest.mark.browser
 def test_the_browser_shows_the_breast_dented_under_the_probe_and_the_force(tmp_path) -> None:
     sync_api = pytest.importorskip(
         "playwright.sync_api", reason="Playwright is not installed (pip install playwright)"

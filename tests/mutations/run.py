@@ -174,7 +174,7 @@ def run(mutation: Mutation, timeout_s: float) -> dict[str, object]:
     try:
         source.write_text(original.replace(mutation.find, mutation.replace))
         result = subprocess.run(
-            [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider",
+            [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", "-n", "0",
              "-m", "slow or not slow", *mutation.tests],
             cwd=ROOT, capture_output=True, text=True, timeout=timeout_s, check=False,
         )  # fmt: skip

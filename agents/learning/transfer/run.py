@@ -71,7 +71,8 @@ def cell_folder(
 
 def train_settings(spec: TransferSpec, out: Path) -> list[TrainSettings]:
     """One :class:`TrainSettings` per training run (the task's default hyper-parameters;
-    two training evaluations of 10 episodes, at half and at the whole budget)."""
+    two training evaluations, at half and at the whole budget, of 10 episodes or the cells'
+    ``spec.episodes`` where fewer)."""
     settings = []
     for env_id, config, seed in spec.runs():
         steps = spec.steps[env_id]
@@ -85,7 +86,7 @@ def train_settings(spec: TransferSpec, out: Path) -> list[TrainSettings]:
                 n_envs=spec.n_envs,
                 seed=seed,
                 eval_every=max(1, steps // 2),
-                eval_episodes=10,
+                eval_episodes=min(10, spec.episodes),
                 checkpoint_every=max(1, steps // 2),
                 progress=False,
             )
