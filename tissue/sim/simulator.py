@@ -252,6 +252,7 @@ class TissueSimulator:
         self._time = 0.0
         self.clear_prescribed()
         self.integrator.solver.forget()
+        self.integrator.forget_last_step()
 
     def set_state(
         self,
@@ -275,6 +276,7 @@ class TissueSimulator:
         )
         if time_s is not None:
             self._time = float(time_s)
+        self.integrator.forget_last_step()
 
     def set_clock(self, time_s: float) -> None:
         """Set the clock to ``time_s`` [s], the state untouched (a sleeping step's time:

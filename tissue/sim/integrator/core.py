@@ -43,8 +43,9 @@ class IntegratorCore:
         self._rest_product: SymmetricProduct | None = None
         self._keys: NDArray[np.int64] | None = None
         # The last robust step that ended OK: (positions, velocities) it returned, the
-        # velocities it started from and its step [s]; a step continuing from exactly those
-        # arrays extrapolates its first Newton iterate from them.
+        # velocities it started from and its step [s]; a step continuing from that state
+        # (equal in value) extrapolates its first Newton iterate from them. A state set from
+        # outside forgets it (:meth:`forget_last_step`).
         self._last_step: (
             tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float] | None
         ) = None
@@ -106,6 +107,11 @@ class IntegratorCore:
             min_volume_ratio=min_ratio,
             factorizations=int(report.factorized),
         )
+
+    def forget_last_step(self) -> None:
+        """The next step does not continue the last one (a state set from outside): its
+        Newton starts from x + h v, not extrapolated from the last step's acceleration."""
+        self._last_step = None
 
     def _failed(self, x, v, status: StepStatus) -> StepOutcome:
         self.solver.forget()

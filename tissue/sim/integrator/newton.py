@@ -199,14 +199,20 @@ class NewtonSteps(IntegratorCore):
         return outcome
 
     def _extrapolated_start(self, x0, v0, h) -> NDArray[np.float64] | None:
-        """x + h v + h^2 (v - v_last) / h_last when (x0, v0) are what the last step returned."""
+        """x + h v + h^2 (v - v_last) / h_last when (x0, v0) are what the last step returned
+        (equal in value: a caller may hand a copy of the state it adopted)."""
         last = self._last_step
         if last is None or self.config.quasi_static:
             return None
         positions, velocities, previous, last_h = last
-        if positions is not x0 or velocities is not v0:
+        if not (_same(positions, x0) and _same(velocities, v0)):
             return None
         return extrapolated_positions(x0, v0, h, previous, last_h)
+
+
+def _same(a: NDArray[np.float64], b: NDArray[np.float64]) -> bool:
+    """Whether two states are the same: one array, or equal in value."""
+    return a is b or (a.shape == b.shape and bool(np.array_equal(a, b)))
 
 
 def _finite(energy: float, gradient: NDArray[np.float64]) -> bool:
