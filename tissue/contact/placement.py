@@ -64,6 +64,23 @@ def _first_hit(
 
 
 @nb.njit(cache=True)
+def _area_normal_within(centroids, area_normals, point, radius):  # pragma: no cover
+    """The sum of ``area_normals`` (t, 3) over the triangles whose ``centroids`` (t, 3) lie
+    closer than ``radius`` [m] to ``point`` (3,), in one compiled pass (the NumPy mask over
+    the 2 mm skin's 16,710 triangles took most of a ForceScan step's observation)."""
+    reach = radius * radius
+    total = np.zeros(3)
+    for k in range(centroids.shape[0]):
+        dx = centroids[k, 0] - point[0]
+        dy = centroids[k, 1] - point[1]
+        dz = centroids[k, 2] - point[2]
+        if dx * dx + dy * dy + dz * dz < reach:
+            for axis in range(3):
+                total[axis] += area_normals[k, axis]
+    return total
+
+
+@nb.njit(cache=True)
 def _nearest_hit_indexed(vertices, triangles, origin, direction):  # pragma: no cover
     """:func:`_nearest_hit_distance` over ``triangles`` (t, 3) of ``vertices`` (v, 3)."""
     best = np.inf
@@ -227,8 +244,7 @@ class RestSkin:
                 f"no skin above the point {np.round(origin, 4).tolist()} along "
                 f"{np.round(direction, 3).tolist()}; choose a point inside the tissue"
             )
-        near = np.linalg.norm(self._centroids - hit, axis=1) < _NORMAL_RADIUS_M
-        normal = self._area_normals[near].sum(axis=0)
+        normal = _area_normal_within(self._centroids, self._area_normals, hit, _NORMAL_RADIUS_M)
         return hit, normal / np.linalg.norm(normal)
 
 
