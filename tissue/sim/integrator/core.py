@@ -49,6 +49,8 @@ class IntegratorCore:
         self._last_step: (
             tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float] | None
         ) = None
+        # Where the next step's Newton starts instead (:meth:`start_next_step_near`), once.
+        self._start_near: NDArray[np.float64] | None = None
         # A paper step ends by evaluating the elasticity at its new positions (the energy and
         # det F its outcome reports): with the tangent, that evaluation is the next step's, which
         # starts there. (positions [m] (nodes, 3), projected?, the state), taken once.
@@ -112,6 +114,15 @@ class IntegratorCore:
         """The next step does not continue the last one (a state set from outside): its
         Newton starts from x + h v, not extrapolated from the last step's acceleration."""
         self._last_step = None
+        self._start_near = None
+
+    def start_next_step_near(self, positions: NDArray[np.float64]) -> None:
+        """The next robust dynamic step's Newton starts from ``positions`` [m] (N, 3) instead
+        of x + h v (once; a start that inverts a tet falls back to x + h v): for a step
+        solved again from the same state where an earlier solve's solution lies close to the
+        new one, as the augmented Lagrangian's rounds
+        (:func:`tissue.contact.penalty.augmented_solve`)."""
+        self._start_near = np.array(positions, dtype=np.float64).reshape(-1)
 
     def _failed(self, x, v, status: StepStatus) -> StepOutcome:
         self.solver.forget()

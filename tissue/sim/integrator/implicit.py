@@ -127,5 +127,6 @@ class ImplicitIntegrator(PaperSteps, NewtonSteps):
                 if outcome.status is StepStatus.OK and not self.config.quasi_static
                 else None
             )
+        self._start_near = None  # handed over for this step only, taken or not
         outcome.seconds = time.perf_counter() - start
         return outcome

@@ -199,8 +199,12 @@ class NewtonSteps(IntegratorCore):
         return outcome
 
     def _extrapolated_start(self, x0, v0, h) -> NDArray[np.float64] | None:
-        """x + h v + h^2 (v - v_last) / h_last when (x0, v0) are what the last step returned
-        (equal in value: a caller may hand a copy of the state it adopted)."""
+        """The positions :meth:`start_next_step_near` handed over, once; else x + h v + h^2
+        (v - v_last) / h_last when (x0, v0) are what the last step returned (equal in value:
+        a caller may hand a copy of the state it adopted)."""
+        near, self._start_near = self._start_near, None
+        if near is not None and not self.config.quasi_static and near.size == np.size(x0):
+            return near
         last = self._last_step
         if last is None or self.config.quasi_static:
             return None
