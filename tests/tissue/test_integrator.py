@@ -255,6 +255,37 @@ def test_continued_steps_start_from_extrapolation_and_converge_to_the_same_state
     np.testing.assert_allclose(continued.positions, restarted.positions, atol=1e-9)
 
 
+def test_a_step_handed_a_start_near_its_solution_starts_there_once() -> None:
+    size = 0.02
+    mesh = block_mesh((size, size, size / 2), (4, 4, 2), fix="z=min")
+    materials = TissueMaterials(tissue=NeoHookean(E, NU))
+    top = nodes_on_plane(mesh.nodes, "z=max")
+    sim = TissueSimulator(mesh, materials, SimulationConfig(mode="robust", newton_tolerance=1e-6))
+    sim.prescribe(top, mesh.nodes[top] + [0.0, 0.0, -0.001])
+    x0, v0 = sim.positions.copy(), sim.velocities.copy()
+    plain = sim.step()
+    solution = sim.positions.copy()
+    sim.set_state(x0, v0)
+    sim.integrator.start_next_step_near(solution)
+    near = sim.step()
+    for result in (plain, near):
+        assert result.status is StepStatus.OK
+    # Started at its own solution: converged at once, to the same state (a plain start
+    # has the prescribed nodes off their targets and takes Newton iterations).
+    assert plain.newton_iterations >= 2
+    assert near.newton_iterations == 0
+    assert near.newton_residuals[0] <= 1e-6
+    np.testing.assert_allclose(sim.positions, solution, atol=1e-9)
+    # Handed over for one step: the next solve from the same state starts as a plain one.
+    sim.set_state(x0, v0)
+    assert sim.step().newton_residuals == plain.newton_residuals
+    # A state set from outside forgets a start handed over before it.
+    sim.set_state(x0, v0)
+    sim.integrator.start_next_step_near(solution)
+    sim.set_state(x0, v0)
+    assert sim.step().newton_residuals == plain.newton_residuals
+
+
 def _count_calls(owner: object, name: str) -> list[int]:
     """Wrap ``owner.name`` so that each call adds one to the returned one-item list."""
     calls = [0]
