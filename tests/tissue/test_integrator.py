@@ -284,6 +284,8 @@ def test_a_step_handed_a_start_near_its_solution_starts_there_once() -> None:
     sim.integrator.start_next_step_near(solution)
     sim.set_state(x0, v0)
     assert sim.step().newton_residuals == plain.newton_residuals
+    with pytest.raises(ValueError, match=r"shape \(\d+, 3\).*got \(3,\)"):
+        sim.integrator.start_next_step_near(np.zeros(3))
 
 
 def _count_calls(owner: object, name: str) -> list[int]:

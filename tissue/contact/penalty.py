@@ -100,8 +100,9 @@ MAX_AUGMENTATIONS = 10
 #: A re-solve starts Newton from the round before's end where that round's offsets moved the
 #: nodal contact forces by at most this share (ten force tolerances), from x + h v where
 #: they moved them more (see :func:`augmented_solve`). LesionSearch-v0's scripted episode
-#: (penalty, 1,363 tets): 1,249 Newton iterations with every re-solve from x + h v, 999 with
-#: this, the same forces; a press of lesion 6 slips early from 0.4 on and holds at 0.2.
+#: (penalty, level 1363, 1,303 tets): 1,249 Newton iterations with every re-solve from
+#: x + h v, 999 with this, the same forces; a press of lesion 6 slips early from 0.4 on and
+#: holds at 0.2.
 NEAR_START_FORCE_CHANGE = 0.1
 
 

@@ -122,7 +122,13 @@ class IntegratorCore:
         solved again from the same state where an earlier solve's solution lies close to the
         new one, as the augmented Lagrangian's rounds
         (:func:`tissue.contact.penalty.augmented_solve`)."""
-        self._start_near = np.array(positions, dtype=np.float64).reshape(-1)
+        start = np.array(positions, dtype=np.float64)
+        if start.shape != self._rest.shape:
+            raise ValueError(
+                f"start_next_step_near needs positions of shape {self._rest.shape} (the "
+                f"mesh's nodes, [m]); got {start.shape}: pass a state of this simulation"
+            )
+        self._start_near = start.reshape(-1)
 
     def _failed(self, x, v, status: StepStatus) -> StepOutcome:
         self.solver.forget()
