@@ -25,8 +25,9 @@ class StepDiagnostics:
     """How a tissue step was solved.
 
     Attributes:
-        iterations: Newton iterations (robust FE), 1 (a paper FE step's one linear solve),
-            or the substeps (PBD).
+        iterations: Newton iterations (robust FE; every solve of the step, its
+            augmentation rounds and re-settled node sets included), 1 (a paper FE step's
+            one linear solve), or the substeps (PBD).
         linear_iterations: iterations of the linear solver (0 for direct solves).
         contact_count: contact points (or held nodes) carrying force at the step's end.
         sub_motions: tissue steps the probe's motion was split into (1: none; see
@@ -101,7 +102,8 @@ class TissueStep:
 
 
 _Frozen = TypeVar("_Frozen")
-_ITERATION_KEYS = ("newton_iterations", "iterations", "substeps")
+# PBD gives both its substeps and its constraint iterations a substep: the substeps count.
+_ITERATION_KEYS = ("newton_iterations", "substeps", "iterations")
 _ASLEEP_DETAILS = MappingProxyType({"asleep": 1.0})
 _TYPED_KEYS = {
     *_ITERATION_KEYS,

@@ -139,6 +139,7 @@ def test_bench_env_reports_steps_per_second_and_where_the_time_goes(tmp_path: Pa
     payload = json.loads(json_path.read_text())
     assert payload["revision"] and payload["machine"]
     import envs
+    from agents.lab.bench.env import SLIDE_STEPS
 
     assert [record["env_id"] for record in payload["records"]] == list(envs.ENV_IDS)
     for record in payload["records"]:
@@ -157,7 +158,23 @@ def test_bench_env_reports_steps_per_second_and_where_the_time_goes(tmp_path: Pa
         assert 0.0 <= record["force_largest_dip"] < 1.0
         if record["env_id"].startswith("probegym/BreastCompress-"):  # a press normal to the skin
             assert record["force_largest_dip"] < 0.05
+        assert 0.0 <= record["slide_force_largest_fall"] <= 1.0
+        assert 0 <= record["slide_force_jumps"] <= SLIDE_STEPS
+        assert record["iterations_per_step"] >= 1.0  # LM: at least one Newton iteration a step
     assert "image (ms a frame)" in json_path.with_suffix(".md").read_text()
+
+
+def test_a_force_s_step_to_step_falls_and_jumps_are_counted_above_the_floor() -> None:
+    from agents.lab.bench.contact import largest_step_fall
+
+    # Below the 0.02 N floor nothing counts: 0.01 -> 1.0 is first contact, not a jump.
+    assert largest_step_fall([0.0, 0.01, 1.0, 1.0, 0.3, 0.9, 0.85]) == (
+        pytest.approx(0.7),
+        2,  # 1.0 -> 0.3 and 0.3 -> 0.9; 0.9 -> 0.85 moves 5.6 %
+    )
+    assert largest_step_fall([0.5, 0.6, 0.7]) == (0.0, 0)  # rising only: no fall
+    assert largest_step_fall([0.01, 0.0]) == (0.0, 0)
+    assert largest_step_fall([]) == (0.0, 0)
 
 
 def test_contact_targets_reach_its_markdown() -> None:

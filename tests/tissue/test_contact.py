@@ -538,6 +538,41 @@ def test_predicted_offsets_save_rounds_and_keep_the_answer(block, monkeypatch) -
     assert predicted == pytest.approx(kept, rel=2 * FORCE_TOLERANCE)
 
 
+@pytest.mark.parametrize("method", ["penalty", "prescribed"])
+def test_an_augmented_step_reports_the_newton_iterations_of_every_round(
+    block, method, monkeypatch
+) -> None:
+    """A step solved again (penalty's augmentation rounds, prescribed's guard and node set)
+    reports the Newton iterations of all its solves, not only the last one's."""
+    from tissue.sim.integrator import ImplicitIntegrator
+
+    solves: list[int] = []
+    step = ImplicitIntegrator.step
+
+    def counted(self, *args, **kwargs):
+        outcome = step(self, *args, **kwargs)
+        solves.append(outcome.newton_iterations)
+        return outcome
+
+    monkeypatch.setattr(ImplicitIntegrator, "step", counted)
+    shape = SphereProbe(0.01)
+    params = (
+        PenaltyParams(stiffness_n_per_m=20.0, penetration_tolerance_m=2e-5)
+        if method == "penalty"
+        else PrescribedParams(online=True, sliding=True, skin_guard=True)
+    )
+    model = _model(method, block, shape, params=params)
+    probe = Probe.looking_along(shape, np.array([0.0, 0.0, SIZE / 2]), np.array([0, 0, -1.0]))
+    re_solved = 0
+    for i in range(1, 11):
+        solves.clear()
+        result = model.step(probe.position_world + [0.0, 0.0, -0.0002 * i], probe.quat_wxyz)
+        assert result.status is StepStatus.OK
+        assert result.diagnostics.iterations == sum(solves)
+        re_solved += len(solves) > 1
+    assert re_solved > 0  # the press did solve steps again
+
+
 @pytest.mark.parametrize("sliding", [False, True])
 def test_prescribed_reaction_balances_the_fixed_base(block, sliding: bool) -> None:
     shape = BoxProbe((0.01, 0.01, 0.01))

@@ -82,7 +82,7 @@ from tissue.fem.material import TissueMaterials
 from tissue.mesh import TetMesh
 from tissue.probe import Probe
 from tissue.profile import profile_choices
-from tissue.sim.integrator import StepOutcome, TermEvaluation
+from tissue.sim.integrator import StepOutcome, TermEvaluation, with_work_of
 from tissue.sim.simulator import StepResult, TissueSimulator
 from tissue.sim.solvers import RankOneTerms
 from tissue.status import StepStatus
@@ -482,7 +482,8 @@ def augmented_solve(
     point lies deeper than ``tolerance_m`` [m] or an augmentation would move the nodal
     contact forces by more than ``force_tolerance`` of them, at most ``max_augmentations``
     times; each augmentation raises k so that no offset reaches beyond ``tolerance_m`` (see
-    the module docstring). Not committed: returns the integrator's outcome and the
+    the module docstring). Not committed: returns the last round's outcome, carrying the
+    Newton and linear iterations of every round (:func:`with_work_of`), and the
     augmentations made."""
     dofs, targets = sim.constraints()
     x0, v0 = sim.positions.copy(), sim.velocities.copy()
@@ -494,8 +495,12 @@ def augmented_solve(
     # little), else from x + h v: from the extrapolated start, or from any round's end, a
     # press of the 1,363-tet phantom's lesion 6 (tests/tissue/test_force_growth.py) slipped
     # at 15.5 mm instead of 16, its force falling 11-13 % (docs/design-decisions.md).
+    spent: StepOutcome | None = None
     for round_index in range(max_augmentations + 1):
         outcome = sim.integrator.step(x0, v0, dt, dofs, targets, (term,), frames)
+        if spent is not None:
+            outcome = with_work_of(outcome, spent)
+        spent = outcome
         if outcome.status in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
             break
         if round_index == max_augmentations:

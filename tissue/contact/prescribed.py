@@ -72,7 +72,7 @@ from tissue.contact.wrench_stiffness import ContactConstraints
 from tissue.errors import ConfigError
 from tissue.mesh import TetMesh, boundary_faces
 from tissue.profile import profile_choices
-from tissue.sim.integrator import StepOutcome
+from tissue.sim.integrator import StepOutcome, with_work_of
 from tissue.status import StepStatus
 
 # Re-solves of a guarded step's springs at most (see PrescribedParams.skin_guard); as the
@@ -453,14 +453,19 @@ class PrescribedContact(FEContactModel):
         reaction pulls leaves; after a change the step is solved again from its start, at
         most ``_SET_ROUNDS`` times. ``planes``: the held nodes' planes (points [m], normals),
         (k, 3) each, as prescribed. Returns the outcome, the guard's augmentations (all
-        rounds) and the re-solves."""
+        rounds) and the re-solves; the outcome carries the Newton and linear iterations of
+        every solve (:func:`tissue.sim.integrator.with_work_of`)."""
         sim, guard = self.sim, self._guard
         assert guard is not None
         tolerance = self.params.skin_guard_tolerance_m
         points, normals = planes if planes is not None else (np.zeros((0, 3)), np.zeros((0, 3)))
         augmentations = 0
+        spent: StepOutcome | None = None
         for set_round in range(_SET_ROUNDS + 1):
             outcome, rounds = augmented_solve(sim, guard, h, tolerance, _GUARD_ROUNDS)
+            if spent is not None:
+                outcome = with_work_of(outcome, spent)
+            spent = outcome
             augmentations += rounds
             if set_round == _SET_ROUNDS or outcome.status in (
                 StepStatus.DIVERGED,

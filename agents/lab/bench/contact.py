@@ -113,6 +113,11 @@ def skin_label(collision_edge_m: float | None) -> str:
     return "paper" if collision_edge_m is None else f"{collision_edge_m * 1e3:g} mm"
 
 
+#: A step-to-step change of the normal force by more than this share of it is a jump
+#: (:func:`largest_step_fall`).
+FORCE_JUMP = 0.2
+
+
 def largest_force_dip(forces: list[float] | NDArray[np.float64], floor_n: float = 0.02) -> float:
     """The largest fall of a force below its running maximum, as a fraction of that maximum
     (0: it never falls), counted once the maximum exceeds ``floor_n`` [N] (first-contact
@@ -125,6 +130,22 @@ def largest_force_dip(forces: list[float] | NDArray[np.float64], floor_n: float 
     if not np.any(counted):
         return 0.0
     return float(np.max(1.0 - values[counted] / peak[counted]).clip(min=0.0))
+
+
+def largest_step_fall(
+    forces: list[float] | NDArray[np.float64], floor_n: float = 0.02
+) -> tuple[float, int]:
+    """How a force moves from one step to the next: its largest fall as a fraction of the
+    step before (0: it never falls), and the steps where it moved by more than
+    :data:`FORCE_JUMP` of the step before, up or down; steps whose force before is at most
+    ``floor_n`` [N] (out of contact, first-contact noise) are not counted."""
+    values = np.asarray(forces, dtype=np.float64)
+    before, after = values[:-1], values[1:]
+    counted = before > floor_n
+    if not np.any(counted):
+        return 0.0, 0
+    change = (after[counted] - before[counted]) / before[counted]
+    return float(max(0.0, -change.min())), int(np.count_nonzero(np.abs(change) > FORCE_JUMP))
 
 
 def benchmark_one(

@@ -18,6 +18,17 @@ first), no rendering, one process. Per record:
 - ``skin_penetration_max_m``: the deepest point of the skin's facets inside the probe over
   the episode [m], and ``force_largest_dip``: the largest fall of the normal force below its
   running maximum while pressing (the first 40 steps), as a fraction of it;
+- ``slide_force_largest_fall``: the largest fall of the normal force from one step to the
+  next while sliding at a constant depth, as a fraction of the step before, and
+  ``slide_force_jumps``: the slide's steps whose force moved by more than 20 % (either way;
+  :func:`agents.lab.bench.contact.largest_step_fall`). A continuum pressed at a constant
+  depth and slid 0.2 mm has no such jumps; on a discretised skin they are the contact
+  moving from one skin point to the next (docs/environments.md, "The force along a
+  slide");
+- ``iterations_per_step``: the tissue's iterations a step, averaged over the episode
+  (:attr:`tissue.StepDiagnostics.iterations`: Newton iterations for the FE methods, every
+  re-solve of a step included; substeps for PBD): the work behind the time, the same on
+  any machine;
 - ``reset_ms``: the median wall time of five resets after the first.
 - ``reset_randomized_ms``: the same with ``domain_randomization=True`` (each reset draws
   and builds a tissue variant), over seeds 1-5 after a first reset.
@@ -39,7 +50,12 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from agents.lab.bench.contact import largest_force_dip, skin_label, threading_environment
+from agents.lab.bench.contact import (
+    largest_force_dip,
+    largest_step_fall,
+    skin_label,
+    threading_environment,
+)
 from agents.lab.bench.report import BenchRecord, MarkdownTable, write_records
 from envs.probe_env import COLLISION_EDGE_M
 
@@ -88,7 +104,7 @@ def benchmark_env(
         resets.append(time.perf_counter() - tic)
     actions = scripted_press(unwrapped)
     cpu, wall, parts, statuses = [], [], [], []
-    skin_depths, pressing_forces = [], []
+    skin_depths, normal_forces, iterations = [], [], []
     for action in actions:
         tic_cpu, tic = time.process_time(), time.perf_counter()
         _, _, terminated, truncated, info = env.step(action)
@@ -97,8 +113,9 @@ def benchmark_env(
         parts.append(dict(unwrapped.last_timing))
         statuses.append(info.get("tissue", {}).get("status"))
         skin_depths.append(float(info.get("tissue", {}).get("skin_penetration_m", 0.0)))
-        if len(cpu) <= PRESS_STEPS:
-            pressing_forces.append(unwrapped.normal_force_n(unwrapped.coupling.last_step))
+        tissue_step = unwrapped.coupling.last_step
+        normal_forces.append(unwrapped.normal_force_n(tissue_step))
+        iterations.append(0 if tissue_step is None else tissue_step.diagnostics.iterations)
         if terminated or truncated:
             break
     image_ms = image_frame_ms(unwrapped)
@@ -113,6 +130,8 @@ def benchmark_env(
     randomized.close()
     median = {key: float(np.median([p[key] for p in parts])) * 1e3 for key in parts[0]}
     cpu_ms = float(np.median(cpu)) * 1e3
+    # The slide's forces from the press's last step on: the first move is a change too.
+    slide_fall, slide_jumps = largest_step_fall(normal_forces[PRESS_STEPS - 1 :])
     record: dict[str, Any] = {
         "env_id": env_id,
         "contact": contact,
@@ -122,7 +141,10 @@ def benchmark_env(
         "skin": skin_label(collision_edge_m),
         "collision_edge_m": collision_edge_m,
         "skin_penetration_max_m": max(skin_depths, default=0.0),
-        "force_largest_dip": largest_force_dip(pressing_forces),
+        "force_largest_dip": largest_force_dip(normal_forces[:PRESS_STEPS]),
+        "slide_force_largest_fall": slide_fall,
+        "slide_force_jumps": slide_jumps,
+        "iterations_per_step": float(np.mean(iterations)),
         "steps": len(cpu),
         "steps_per_s": 1e3 / cpu_ms,
         "step_cpu_ms": cpu_ms,
@@ -218,7 +240,8 @@ def _table(records: list[dict[str, Any]]) -> MarkdownTable:
         "env steps per second (median, from CPU time) and a step's parts [ms]",
         ["env", "contact", "profile", "level (tets)", "skin", "steps/s", "target", "tissue",
          "controller", "robot", "observation", "reset", "reset (randomised)",
-         "image (ms a frame)", "skin in probe (mm)", "force dip (%)"],
+         "image (ms a frame)", "skin in probe (mm)", "force dip (%)",
+         "slide: largest fall (%)", "slide: jumps > 20 %", "iterations a step"],
     )  # fmt: skip
     for r in records:
         target = r.get("target_steps_per_s")
@@ -232,6 +255,8 @@ def _table(records: list[dict[str, Any]]) -> MarkdownTable:
             f"{r['reset_ms']:.2f}", f"{r['reset_randomized_ms']:.0f}",
             f"{r['image_ms']:.2f}", f"{r['skin_penetration_max_m'] * 1e3:.3f}",
             f"{r['force_largest_dip'] * 100:.1f}",
+            f"{r['slide_force_largest_fall'] * 100:.0f}", str(r["slide_force_jumps"]),
+            f"{r['iterations_per_step']:.2f}",
         ])  # fmt: skip
     return table
 
@@ -249,7 +274,9 @@ def _print(record: dict[str, Any]) -> None:
         f"{record['reset_ms']:.2f} ms ({record['reset_randomized_ms']:.0f} ms randomised), "
         f"image {record['image_ms']:.2f} ms a frame; skin in the probe "
         f"{record['skin_penetration_max_m'] * 1e3:.3f} mm, force dip "
-        f"{record['force_largest_dip'] * 100:.1f} %"
+        f"{record['force_largest_dip'] * 100:.1f} %, slide's largest fall "
+        f"{record['slide_force_largest_fall'] * 100:.0f} % ({record['slide_force_jumps']} "
+        f"jumps), {record['iterations_per_step']:.2f} iterations a step"
         + ("" if target is None else f"; target {target:.0f}{verdict}"),
         flush=True,
     )

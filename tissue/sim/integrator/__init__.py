@@ -5,7 +5,7 @@ The modules:
 
 - :mod:`.config`: :class:`IntegratorConfig`, Newton's tuning
   included.
-- :mod:`.outcome`: :class:`StepOutcome`, and substeps merged into one.
+- :mod:`.outcome`: :class:`StepOutcome`, substeps merged into one, re-solves' work added.
 - :mod:`.assembly`: the compiled kernels the step's systems are assembled with.
 - :mod:`.potential`: the extra energy terms (:class:`TermEvaluation`, :class:`EnergyTerm`)
   and robust mode's :class:`IncrementalPotential` (energy, gradient, Hessian, Newton
@@ -27,7 +27,7 @@ from tissue.sim.integrator.config import (
 )
 from tissue.sim.integrator.implicit import ImplicitIntegrator
 from tissue.sim.integrator.line_search import extrapolated_positions
-from tissue.sim.integrator.outcome import StepOutcome
+from tissue.sim.integrator.outcome import StepOutcome, with_work_of
 from tissue.sim.integrator.paper import PaperSystem
 from tissue.sim.integrator.potential import (
     EnergyTerm,
@@ -47,4 +47,5 @@ __all__ = [
     "TermEvaluation",
     "extrapolated_positions",
     "floored_tolerance",
+    "with_work_of",
 ]

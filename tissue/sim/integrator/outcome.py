@@ -1,8 +1,9 @@
-"""What a step returns (:class:`StepOutcome`), and substeps merged into one."""
+"""What a step returns (:class:`StepOutcome`), substeps merged into one, and re-solves'
+work added to the solve kept."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -66,4 +67,17 @@ def merge(first: StepOutcome, second: StepOutcome) -> StepOutcome:
         subdivisions=first.subdivisions + second.subdivisions,
         min_volume_ratio=second.min_volume_ratio,
         factorizations=first.factorizations + second.factorizations,
+    )
+
+
+def with_work_of(final: StepOutcome, earlier: StepOutcome) -> StepOutcome:
+    """``final`` with the solver work of ``earlier``, a solve of the same step that it
+    replaced (an augmentation round, a node set settled again), added: Newton and linear
+    iterations and factorisations are summed, so that a step reports all it cost; its
+    state, status, residuals and the rest are ``final``'s."""
+    return replace(
+        final,
+        newton_iterations=earlier.newton_iterations + final.newton_iterations,
+        linear_iterations=earlier.linear_iterations + final.linear_iterations,
+        factorizations=earlier.factorizations + final.factorizations,
     )
