@@ -181,6 +181,13 @@ class LesionSearchEnv(ProbeEnv):
     a random sign: the lesion lies in the image plane, that far to the side, out of the
     image; the tissue at rest. All from the reset's seed.
 
+    The skin slopes there, so the end of the face meets it first. Pressed on that rounded
+    edge and slid along the image's lateral axis at a constant depth, the force snaps from
+    one skin point to the next (up to 72 % of it lost in one 0.2 mm step at 1,303 tets,
+    every FE method; docs/environments.md, "The force along a slide"): a limitation of the
+    coarse volume under the skin, not of the task (ForceScan's scripted slide, the face on
+    the skin, moves by 1 % a step at most).
+
     ## Episode end
 
     Terminated with success when the lesion has stayed visible, within 3 mm of the image's

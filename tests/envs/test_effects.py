@@ -211,17 +211,25 @@ def test_a_sleeping_tissue_observes_as_a_stepping_one(
     observations are those of a tissue that never sleeps, to round-off (a full free-air
     step moves the tissue by about 1e-17 m where it moves it at all, which the sensed
     wrench, a balance of the sensor's reading against the probe's load, carries as 1e-16 N).
-    PBD, and LM, within 1e-9: LM's kept factorisation preconditions CG from the history it
-    saw, which sleeping shortens, so its solves agree to CG's tolerance, a float32 ulp of the
-    observed torque (1e-10 N m), not bit for bit."""
+    PBD, and LM, within 1e-6 of each observation's largest value and a float32 ulp of the
+    value (at least 1e-9): LM's kept factorisation preconditions CG from the history it saw,
+    which sleeping shortens, so its solves agree to CG's tolerance, not bit for bit. How far
+    depends on the factor's last bits, which MKL's code path sets (MKL_CBWR): 4e-15 N to
+    4e-7 N on a 4 N wrench with MKL 2026.2 here, while two runs of one history agree bit for
+    bit, in one process or two. A float32 observation rounds such a difference either way
+    (one ulp of a 0.3 N force is 3e-8 N)."""
     sleeping, asleep = _sleep_run(monkeypatch, contact, sleep=True)
     stepping, never = _sleep_run(monkeypatch, contact, sleep=False)
     assert never == 0 and asleep >= 15
-    tolerance = 1e-9 if contact in ("pbd", "lm") else 1e-12
     for ours, theirs in zip(sleeping, stepping, strict=True):
         for key in ours:
             difference = np.abs(ours[key].astype(np.float64) - theirs[key])
-            assert float(difference.max()) <= tolerance, key
+            allowed = np.full(difference.shape, 1e-12)
+            if contact in ("pbd", "lm"):
+                magnitude = np.abs(theirs[key]).astype(np.float64)
+                ulp = np.spacing(magnitude.astype(np.float32)).astype(np.float64)
+                allowed = np.maximum(1e-9, ulp + 1e-6 * float(magnitude.max(initial=0.0)))
+            assert np.all(difference <= allowed), (key, float(difference.max()))
     assert float(-stepping[35]["wrench"][1]) > 0.5  # the probe did press the breast
 
 
