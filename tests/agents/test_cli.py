@@ -218,8 +218,8 @@ def test_a_second_study_on_the_same_folder_is_refused(tmp_path, capsys) -> None:
 
 #: ``python -c`` running ``probegym`` with Python's own SIGINT handler, as a terminal starts
 #: it. A process inherits ignored signals, and a command started in the background by a
-#: non-interactive shell (``cmd &``, as CI scripts and ``nohup`` runs do) ignores SIGINT: the
-#: study then never saw the Ctrl-C and ran to its end (exit 0, every record written).
+#: non-interactive shell (``cmd &`` in a script) ignores SIGINT: a study started under such a
+#: pytest never saw the Ctrl-C and ran to its end (exit 0, every record written).
 _AS_FROM_A_TERMINAL = (
     "import runpy, signal; "
     "signal.signal(signal.SIGINT, signal.default_int_handler); "
