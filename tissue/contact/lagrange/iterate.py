@@ -4,7 +4,7 @@ step's run with its setting and tallies (:class:`NewtonRun`)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -87,11 +87,11 @@ class NewtonRun:
     # False once this step's exact tangent was found indefinite or took a step that did
     # not reduce the residual: projected for the rest of the step.
     exact_trusted: bool = True
-    # The last full iterations in a row with the same points pressing, for the acceleration
-    # (RobustSteps._accelerated): each iterate's positions (3N,), the points pressing, its
-    # full step's end (3N,) and the forces there by surface point.
-    history: list[
+    # The last full iteration, for the acceleration (RobustSteps._accelerated): its iterate's
+    # positions (3N,), the points pressing, its full step's end (3N,) and the forces there
+    # by surface point; and the iterates the acceleration replaced.
+    last_full: (
         tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]
-    ] = field(default_factory=list)
-    # The iterates the acceleration replaced.
+        | None
+    ) = None
     accelerated: int = 0

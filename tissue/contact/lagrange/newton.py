@@ -13,9 +13,8 @@ point penetrates beyond the contact tolerance. The pieces of one iteration, in o
 3. the contact response and the unaugmented forces (:meth:`RobustSteps._responded_step`);
 4. the step, halved while it would invert a tet (:meth:`RobustSteps._feasible_trial`);
 5. the new iterate: contacts re-detected, KKT residual and penetration
-   (:meth:`RobustSteps._next_iterate`), in a dynamic step accelerated where the residual
-   falls slowly (:meth:`RobustSteps._accelerated`), an exact step that does not reduce the
-   residual undone (the step then goes on projected, or is retried by its caller);
+   (:meth:`RobustSteps._next_iterate`), an exact step that does not reduce the residual
+   undone (the step then goes on projected, or is retried by its caller);
 6. the convergence test (:meth:`RobustSteps._converged`).
 
 Quasi-static steps complete the exact tangent near the solution with the contact terms, so
@@ -54,10 +53,8 @@ from tissue.status import StepStatus
 _MIN_FEASIBLE_FRACTION = 2.0**-10
 
 
-#: The acceleration of a dynamic step's iterates (:meth:`RobustSteps._accelerated`) is tried
-#: where the plain iteration cut the KKT residual by less than this factor ...
-_ACCELERATED_BELOW_RATIO = 0.2
-#: ... with coefficients of at most this magnitude ...
+#: The acceleration extrapolates a step's end by at most this many times its difference
+#: from the last step's end (:meth:`RobustSteps._accelerated`).
 _MAX_EXTRAPOLATION = 10.0
 #: ... and keeps an accelerated iterate whose deepest point lies at most this far inside the
 #: probe [m] (or no deeper than the plain iterate's): the next iteration's LCP pulls it out.
@@ -307,50 +304,41 @@ class RobustSteps(ContactResponses, ContactTangent):
         forces: NDArray[np.float64],
         after: Iterate,
     ) -> Iterate:
-        """Anderson acceleration (Walker & Ni 2011, "type II") of the Newton-LCP map
-        G: (y, lambda) -> the full step's end and its forces, over up to
-        :attr:`~LagrangeParams.anderson_depth` past iterations in a row in which the same
-        points press: y' = G_k - dG gamma and lambda' = max(0, Lambda_k - dLambda gamma),
-        gamma the least-squares fit of the step f_k = G_k - y_k by the steps' differences
-        dF. Where the tangent misses a term (a loaded point on the probe's rim: its normal
-        turns as it slides, which the dynamic step's tangent leaves out) the residual falls
-        linearly, along the same few directions every iteration; the acceleration takes that
-        contraction's fixed point. Tried where the plain iteration cut the residual by less
-        than :data:`_ACCELERATED_BELOW_RATIO`; kept only if it lowers the KKT residual below
-        the plain iterate's and penetrates no deeper than :data:`_ACCELERATED_PENETRATION_M`
-        (or the plain iterate), otherwise the plain iterate ``after``. The convergence test
-        is the same either way."""
-        depth = self.params.anderson_depth
-        if not run.dynamic or fraction != 1.0 or depth == 0:
-            run.history.clear()
+        """Anderson acceleration of depth one (Walker & Ni 2011) of the Newton-LCP map
+        G: (y, lambda) -> the full step's end and forces, where two full iterations in a
+        row act on the same contacts: y' = G_k - gamma (G_k - G_(k-1)), the forces likewise,
+        gamma = f_k . (f_k - f_(k-1)) / |f_k - f_(k-1)|^2 with f = G(y) - y the step. Where
+        the tangent misses a term (a loaded point on the probe's rim: its normal turns as it
+        slides, which the dynamic step's tangent leaves out) the residual falls linearly,
+        the same direction every iteration; the acceleration takes the fixed point of that
+        contraction. Kept only if it lowers the KKT residual below the plain step's and
+        penetrates no deeper; otherwise the plain iterate ``after``."""
+        if not run.dynamic or fraction != 1.0:
+            run.last_full = None
             return after
         pressing = before.contacts.points[forces > 0.0]
         by_point = np.zeros(self.surface.count)
         by_point[before.contacts.points] = forces
-        history = run.history
-        if history and not np.array_equal(history[-1][1], pressing):
-            history.clear()
-        history.append((before.y, pressing, trial, by_point))
-        del history[: -(depth + 1)]
-        if len(history) < 2:
+        current = (before.y, pressing, trial, by_point)
+        last = run.last_full
+        run.last_full = current
+        if last is None or not np.array_equal(last[1], pressing):
             return after
         tolerance = self.sim.integrator.config.newton_tolerance
         if after.residual <= tolerance and after.penetration <= self.gap_tolerance_m:
             return after  # converged as it is
-        if after.residual < _ACCELERATED_BELOW_RATIO * before.residual:
-            return after  # converging fast: an evaluation more would not pay
         free = run.free
-        steps = np.stack([(g - y)[free] for y, _, g, _ in history], axis=1)
-        ends = np.stack([g for _, _, g, _ in history], axis=1)
-        loads = np.stack([f for _, _, _, f in history], axis=1)
-        d_steps = np.diff(steps, axis=1)
-        if not np.all(np.isfinite(d_steps)) or not np.any(d_steps):
+        f_now = (trial - before.y)[free]
+        f_last = (last[2] - last[0])[free]
+        change = f_now - f_last
+        denominator = float(change @ change)
+        if denominator <= 0.0:
             return after
-        gamma = np.linalg.lstsq(d_steps, steps[:, -1], rcond=None)[0]
-        if not np.all(np.abs(gamma) < _MAX_EXTRAPOLATION):
+        gamma = float(f_now @ change) / denominator
+        if not abs(gamma) < _MAX_EXTRAPOLATION:
             return after
-        y = trial - np.diff(ends, axis=1) @ gamma
-        mixed = np.maximum(by_point - np.diff(loads, axis=1) @ gamma, 0.0)
+        y = trial - gamma * (trial - last[2])
+        mixed = np.maximum(by_point - gamma * (by_point - last[3]), 0.0)
         evaluated = run.potential.evaluate(y)
         if not math.isfinite(evaluated[0]):
             return after

@@ -109,14 +109,6 @@ class LagrangeParams:
             step may take before its pseudo time step is quartered. Relaxation steps that
             converge take 2-16; one with too long a pseudo time step runs to the cap without
             converging, and 20 stops it early where a shorter one converges in a few.
-        anderson_depth: (robust mode, dynamic steps) Anderson acceleration of the Newton-LCP
-            iterates over up to this many past iterations in a row with the same points
-            pressing; 0 turns it off. Where a loaded point sits on the probe's rounded rim
-            the dynamic step's tangent misses its normal's turning and the residual falls
-            linearly; the acceleration takes that contraction's fixed point. Under a fresh
-            PPO policy's actions (BreastCompress-v1, 1,303 tets, 300 steps) depth 1 took the
-            Newton iterations a step from 6.1 to 4.6; depths 2 and 3 to 4.9
-            (:meth:`tissue.contact.lagrange.newton.RobustSteps._accelerated`).
     """
 
     alarm_distance_m: float = 0.002
@@ -139,7 +131,6 @@ class LagrangeParams:
     max_relaxation_time_steps: float = 1024.0
     relaxed_inertia_fraction: float = 1e-2
     relaxation_iterations: int = 20
-    anderson_depth: int = 1
 
     def __post_init__(self) -> None:
         for name in (
@@ -175,7 +166,6 @@ class LagrangeParams:
             "refresh_after_missed_rounds": 1,
             "max_relaxation_steps": 1,
             "relaxation_iterations": 1,
-            "anderson_depth": 0,
         }
         for name, least in counts.items():
             value = getattr(self, name)
