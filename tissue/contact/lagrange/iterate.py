@@ -87,11 +87,3 @@ class NewtonRun:
     # False once this step's exact tangent was found indefinite or took a step that did
     # not reduce the residual: projected for the rest of the step.
     exact_trusted: bool = True
-    # The last full iteration, for the acceleration (RobustSteps._accelerated): its iterate's
-    # positions (3N,), the points pressing, its full step's end (3N,) and the forces there
-    # by surface point; and the iterates the acceleration replaced.
-    last_full: (
-        tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]
-        | None
-    ) = None
-    accelerated: int = 0

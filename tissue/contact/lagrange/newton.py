@@ -53,14 +53,6 @@ from tissue.status import StepStatus
 _MIN_FEASIBLE_FRACTION = 2.0**-10
 
 
-#: The acceleration extrapolates a step's end by at most this many times its difference
-#: from the last step's end (:meth:`RobustSteps._accelerated`).
-_MAX_EXTRAPOLATION = 10.0
-#: ... and keeps an accelerated iterate whose deepest point lies at most this far inside the
-#: probe [m] (or no deeper than the plain iterate's): the next iteration's LCP pulls it out.
-_ACCELERATED_PENETRATION_M = 2e-5
-
-
 class RobustSteps(ContactResponses, ContactTangent):
     """``robust`` mode's Newton-LCP step."""
 
@@ -282,8 +274,6 @@ class RobustSteps(ContactResponses, ContactTangent):
             run.status = StepStatus.DIVERGED
             return False
         exact = not project and (run.contact_terms or run.exact_first)
-        if not (exact and after.residual >= before.residual):
-            after = self._accelerated(run, before, fraction, trial, forces, after)
         if exact and after.residual >= before.residual:
             # Near a bifurcation of a deep press (the tissue could slide either way under the
             # frictionless probe) the exact tangent is nearly singular and its full step can
@@ -294,62 +284,6 @@ class RobustSteps(ContactResponses, ContactTangent):
             return self._distrust_exact_tangent(run)
         run.at = after
         return not self._converged(run)
-
-    def _accelerated(
-        self,
-        run: NewtonRun,
-        before: Iterate,
-        fraction: float,
-        trial: NDArray[np.float64],
-        forces: NDArray[np.float64],
-        after: Iterate,
-    ) -> Iterate:
-        """Anderson acceleration of depth one (Walker & Ni 2011) of the Newton-LCP map
-        G: (y, lambda) -> the full step's end and forces, where two full iterations in a
-        row act on the same contacts: y' = G_k - gamma (G_k - G_(k-1)), the forces likewise,
-        gamma = f_k . (f_k - f_(k-1)) / |f_k - f_(k-1)|^2 with f = G(y) - y the step. Where
-        the tangent misses a term (a loaded point on the probe's rim: its normal turns as it
-        slides, which the dynamic step's tangent leaves out) the residual falls linearly,
-        the same direction every iteration; the acceleration takes the fixed point of that
-        contraction. Kept only if it lowers the KKT residual below the plain step's and
-        penetrates no deeper; otherwise the plain iterate ``after``."""
-        if not run.dynamic or fraction != 1.0:
-            run.last_full = None
-            return after
-        pressing = before.contacts.points[forces > 0.0]
-        by_point = np.zeros(self.surface.count)
-        by_point[before.contacts.points] = forces
-        current = (before.y, pressing, trial, by_point)
-        last = run.last_full
-        run.last_full = current
-        if last is None or not np.array_equal(last[1], pressing):
-            return after
-        tolerance = self.sim.integrator.config.newton_tolerance
-        if after.residual <= tolerance and after.penetration <= self.gap_tolerance_m:
-            return after  # converged as it is
-        free = run.free
-        f_now = (trial - before.y)[free]
-        f_last = (last[2] - last[0])[free]
-        change = f_now - f_last
-        denominator = float(change @ change)
-        if denominator <= 0.0:
-            return after
-        gamma = float(f_now @ change) / denominator
-        if not abs(gamma) < _MAX_EXTRAPOLATION:
-            return after
-        y = trial - gamma * (trial - last[2])
-        mixed = np.maximum(by_point - gamma * (by_point - last[3]), 0.0)
-        evaluated = run.potential.evaluate(y)
-        if not math.isfinite(evaluated[0]):
-            return after
-        candidate = self._next_iterate(run, y, evaluated, mixed[before.contacts.points])
-        if not (
-            candidate.residual < after.residual
-            and candidate.penetration <= max(after.penetration, _ACCELERATED_PENETRATION_M)
-        ):
-            return after
-        run.accelerated += 1
-        return candidate
 
     def _distrust_exact_tangent(self, run: NewtonRun) -> bool:
         """Undo an exact step (the iterate stays ``run.at``) and take the projected tangent
@@ -645,7 +579,6 @@ class RobustSteps(ContactResponses, ContactTangent):
             "iterations": run.iterations,
             "exact_iterations": run.exact_iterations,
             "exact_rejected": run.rejected,
-            "accelerated_iterations": run.accelerated,
             "shortened_steps": run.shortened,
             "chord_from_last_step": run.handed is not None,
             "started_at_x": run.started_at_x,
