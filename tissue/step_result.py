@@ -26,8 +26,9 @@ class StepDiagnostics:
 
     Attributes:
         iterations: Newton iterations (robust FE; every solve of the step, its
-            augmentation rounds and re-settled node sets included), 1 (a paper FE step's
-            one linear solve), or the substeps (PBD).
+            augmentation rounds, re-settled node sets, undone attempts, halves, relaxation
+            steps and sub-motions included), 1 (a paper FE step's one linear solve), or the
+            substeps (PBD, over every sub-motion).
         linear_iterations: iterations of the linear solver (0 for direct solves).
         contact_count: contact points (or held nodes) carrying force at the step's end.
         sub_motions: tissue steps the probe's motion was split into (1: none; see
@@ -141,6 +142,13 @@ def asleep_diagnostics(compute_ms: float) -> StepDiagnostics:
     )
 
 
+def iteration_key(diagnostics: Mapping[str, Any]) -> str:
+    """The name a contact model's diagnostics give the step's iterations: the first of
+    ``newton_iterations``, ``substeps`` (PBD, whose ``iterations`` are per substep) and
+    ``iterations`` that they hold (``iterations`` if none)."""
+    return next((key for key in _ITERATION_KEYS if key in diagnostics), "iterations")
+
+
 def typed_diagnostics(
     diagnostics: Mapping[str, Any], contact_count: int, compute_ms: float
 ) -> StepDiagnostics:
@@ -150,7 +158,7 @@ def typed_diagnostics(
     other finite number in ``details``."""
     if diagnostics.get("asleep"):  # a sleeping step's are known
         return asleep_diagnostics(compute_ms)
-    iterations = next((diagnostics[key] for key in _ITERATION_KEYS if key in diagnostics), 1)
+    iterations = diagnostics.get(iteration_key(diagnostics), 1)
     ratio = diagnostics.get("min_volume_ratio")
     details = {
         key: float(value)

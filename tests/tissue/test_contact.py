@@ -23,6 +23,7 @@ from tissue.sim.pardiso import pardiso_available
 from tissue.sim.simulator import SimulationConfig
 from tissue.sim.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.status import StepStatus
+from tissue.step_result import typed_diagnostics
 from tissue.threads import running_on_one_thread
 
 E, NU = 3000.0, 0.3
@@ -571,6 +572,72 @@ def test_an_augmented_step_reports_the_newton_iterations_of_every_round(
         assert result.diagnostics.iterations == sum(solves)
         re_solved += len(solves) > 1
     assert re_solved > 0  # the press did solve steps again
+
+
+@pytest.mark.parametrize("quasi", [False, True])
+def test_a_split_lagrange_step_reports_the_newton_iterations_of_every_attempt(
+    block, quasi: bool, monkeypatch
+) -> None:
+    """A robust LM step whose first attempt does not converge is undone and taken as two
+    halves: its diagnostics count the Newton iterations of the undone attempt and of both
+    halves, every iteration the step ran (they counted the last half's alone)."""
+    from tissue.contact.lagrange.newton import RobustSteps
+
+    iteration = RobustSteps._newton_iteration
+    robust_step = RobustSteps._robust_step
+    ran = {"iterations": 0, "attempts": 0, "fail_attempt": -1}
+
+    def counted(self, run):
+        ran["iterations"] += 1
+        return iteration(self, run)
+
+    def failing(self, *args, **kwargs):
+        ran["attempts"] += 1
+        status, points, forces, details = robust_step(self, *args, **kwargs)
+        if ran["attempts"] == ran["fail_attempt"] and status is StepStatus.OK:
+            status = StepStatus.NOT_CONVERGED  # as a step that ran out of iterations
+        return status, points, forces, details
+
+    monkeypatch.setattr(RobustSteps, "_newton_iteration", counted)
+    monkeypatch.setattr(RobustSteps, "_robust_step", failing)
+    shape = SphereProbe(0.01)
+    model = _model("lm", block, shape, quasi=quasi)
+    probe = Probe.looking_along(shape, np.array([0.0, 0.0, SIZE / 2]), np.array([0, 0, -1.0]))
+    split = 0
+    for i in range(1, 9):
+        ran["iterations"], ran["attempts"] = 0, 0
+        ran["fail_attempt"] = 1 if i in (4, 7) else -1
+        result = model.step(probe.position_world + [0.0, 0.0, -0.0003 * i], probe.quat_wxyz)
+        assert result.status is StepStatus.OK, (i, result.diagnostics)
+        assert result.diagnostics.iterations == ran["iterations"], i
+        split += ran["attempts"] > 1
+    assert split == 2  # the two forced failures were split, and only they
+
+
+@pytest.mark.parametrize("method", ["lm", "penalty", "prescribed"])
+def test_a_step_split_into_sub_motions_reports_the_iterations_of_every_one(
+    block, method: str, monkeypatch
+) -> None:
+    """A probe motion longer than the model's sub-motion is taken in pieces; the step's
+    iterations are those of every piece (they were the last piece's alone)."""
+    shape = SphereProbe(0.01)
+    model = _model(method, block, shape)
+    advance = type(model)._advance
+    pieces: list[int] = []
+
+    def counted(self, h):
+        outcome = advance(self, h)
+        pieces.append(typed_diagnostics(outcome[3], 0, 0.0).iterations)
+        return outcome
+
+    monkeypatch.setattr(type(model), "_advance", counted)
+    probe = Probe.looking_along(shape, np.array([0.0, 0.0, SIZE / 2]), np.array([0, 0, -1.0]))
+    model.step(probe.position_world + [0.0, 0.0, -0.001], probe.quat_wxyz)
+    pieces.clear()
+    jump = 2.5 * model.max_sub_motion_m  # three sub-motions, sliding across the block
+    result = model.step(probe.position_world + [jump, 0.0, -0.001], probe.quat_wxyz)
+    assert result.diagnostics.sub_motions == len(pieces) == 3
+    assert result.diagnostics.iterations == sum(pieces) > pieces[-1]
 
 
 @pytest.mark.parametrize("sliding", [False, True])

@@ -29,7 +29,13 @@ from tissue.probe.surface_depth import SurfaceDepth, surface_depth
 from tissue.sim.simulator import SimulationConfig
 from tissue.sim.solvers import SERIAL_STEP_UNKNOWNS
 from tissue.status import StepStatus, worst
-from tissue.step_result import TissueStep, asleep_diagnostics, frozen, typed_diagnostics
+from tissue.step_result import (
+    TissueStep,
+    asleep_diagnostics,
+    frozen,
+    iteration_key,
+    typed_diagnostics,
+)
 from tissue.threads import one_thread_below
 
 #: A contact model's own step locates no lesions (the tissue's step adds them): (0, 3).
@@ -352,6 +358,9 @@ class ContactModel(FreeAirSleep, abc.ABC):
             return self._asleep_step(end, h, pieces, start)
         self._forget_rest()
         status = StepStatus.OK
+        # Every sub-motion's iterations are the step's work (the last one's dictionary
+        # carries the rest of the diagnostics).
+        spent: dict[str, float] = {}
         with one_thread_below(3 * self.mesh.node_count, SERIAL_STEP_UNKNOWNS):
             for piece in range(1, pieces + 1):
                 if piece < pieces:
@@ -360,6 +369,9 @@ class ContactModel(FreeAirSleep, abc.ABC):
                 elif pieces > 1:
                     self.probe.set_pose(*end)
                 piece_status, points, forces, diagnostics = self._advance(h)
+                for key in (iteration_key(diagnostics), "linear_iterations"):
+                    if key in diagnostics:
+                        spent[key] = spent.get(key, 0) + diagnostics[key]
                 status = worst(status, piece_status)
                 if piece_status in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
                     break
@@ -390,6 +402,7 @@ class ContactModel(FreeAirSleep, abc.ABC):
             status = worst(status, StepStatus.PENETRATED)
         diagnostics = {
             **diagnostics,
+            **spent,
             "sub_motions": pieces,
             "skin_vertex_penetration_m": skin.vertex_depth_m,
         }

@@ -1,8 +1,9 @@
 """What a robust step that does not converge falls back on: halves, then relaxation.
 
 A robust step (:mod:`.newton`) that does not converge, or ends with an inverted tet, is
-undone and taken as two half steps with the probe half-way, as the integrator does for the
-tissue alone (:meth:`RobustFallbacks._subdivided_robust_step`). A quasi-static step that
+undone (its Newton iterations still count in the step's diagnostics) and taken as two half
+steps with the probe half-way, as the integrator does for the tissue alone
+(:meth:`RobustFallbacks._subdivided_robust_step`). A quasi-static step that
 still fails at the deepest split has likely reached a limit of the static path, where no
 nearby static solution exists; it is then relaxed to rest with the probe held
 (:meth:`RobustFallbacks._relaxed_step`). Relaxation is tried only at the deepest split:
@@ -39,12 +40,13 @@ class RobustFallbacks(RobustSteps):
         # Only at the deepest split: relaxing a whole increment from rest is far harder.
         if failed and quasi_static and not may_split:
             self._restore(before)
-            outcome = self._relaxed_step(h)
+            outcome = _with_iterations_of(self._relaxed_step(h), outcome)
             failed = False
         if not failed or not may_split:
             outcome[3]["subdivisions"] = depth
             return outcome
         self._restore(before)
+        undone = outcome
         begin = self._pose_before
         assert begin is not None  # may_split
         middle_quat = begin[1] + (end[1] if begin[1] @ end[1] >= 0 else -end[1])
@@ -54,12 +56,12 @@ class RobustFallbacks(RobustSteps):
         self._pose_before = (self.probe.position_world.copy(), self.probe.quat_wxyz.copy())
         self.probe.set_pose(*end)
         if first[0] in (StepStatus.DIVERGED, StepStatus.SOLVER_FAILED):
-            return first
+            return _with_iterations_of(first, undone)
         second = self._subdivided_robust_step(0.5 * h, depth + 1)
         second[3]["relaxation_steps"] = second[3].get("relaxation_steps", 0) + first[3].get(
             "relaxation_steps", 0
         )
-        return second
+        return _with_iterations_of(second, undone, first)
 
     def _relaxed_step(self, h: float):
         """A quasi-static step of ``h`` [s] that did not converge even when split, taken by
@@ -90,9 +92,11 @@ class RobustFallbacks(RobustSteps):
         threshold = self.params.relaxed_inertia_fraction
         steps = 0
         outcome = None
+        spent = 0  # Newton iterations of the relaxation steps and static tries so far
         for steps in range(1, self.params.max_relaxation_steps + 1):  # noqa: B007
             before = self._checkpoint()
             outcome = self._robust_step(h, relax_s=tau)
+            spent += outcome[3].get("iterations", 0)
             if outcome[0] is not StepStatus.OK:
                 self._restore(before)
                 tau *= 0.25
@@ -104,18 +108,33 @@ class RobustFallbacks(RobustSteps):
                 # added here: relaxation steps take none).
                 sim.set_state(sim.positions, sim.velocities, time_s=sim.time_s + h)
                 outcome[3]["relaxation_steps"] = steps
+                outcome[3]["iterations"] = spent
                 return outcome
             moved = (sim.positions - before[0]).reshape(-1)
             inertia = vector_norm(mass * moved) / tau**2
             if inertia <= threshold * vector_norm(self._warm):
                 relaxed = self._checkpoint()
                 settled = self._robust_step(h, True, exact_first_static=True)
+                spent += settled[3].get("iterations", 0)
                 if settled[0] is StepStatus.OK:
                     settled[3]["relaxation_steps"] = steps
+                    settled[3]["iterations"] = spent
                     return settled
                 self._restore(relaxed)
                 threshold *= 0.1  # not yet: relax further before the next try
             tau = min(2.0 * tau, self.params.max_relaxation_time_steps * sim.config.tissue_dt)
         assert outcome is not None
         status = outcome[0] if outcome[0] is not StepStatus.OK else StepStatus.NOT_CONVERGED
-        return status, outcome[1], outcome[2], {**outcome[3], "relaxation_steps": steps}
+        details = {**outcome[3], "relaxation_steps": steps, "iterations": spent}
+        return status, outcome[1], outcome[2], details
+
+
+def _with_iterations_of(outcome, *spent):
+    """``outcome`` (a robust step's (status, points, forces, diagnostics)) with the Newton
+    iterations of the attempts ``spent`` added to its own: an undone attempt and the halves
+    or relaxation that replaced it are all the step's work
+    (:attr:`tissue.StepDiagnostics.iterations` counts every re-solve)."""
+    outcome[3]["iterations"] = outcome[3].get("iterations", 0) + sum(
+        attempt[3].get("iterations", 0) for attempt in spent
+    )
+    return outcome
