@@ -6,6 +6,7 @@ import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
+from tissue.contact.ray_grid import TriangleGrid, triangle_hit
 from tissue.contact.surface_points import SurfacePoints, contact_surface
 from tissue.errors import TissueInputError
 from tissue.mesh import TetMesh
@@ -39,25 +40,6 @@ def ray_surface_hit(
         origin,
         direction,
     )
-    if not np.isfinite(t):
-        return None
-    return origin + t * direction
-
-
-def _first_hit(
-    a: NDArray[np.float64],
-    edge1: NDArray[np.float64],
-    edge2: NDArray[np.float64],
-    origin: NDArray[np.float64],
-    direction: NDArray[np.float64],
-) -> NDArray[np.float64] | None:
-    """:func:`ray_surface_hit` on triangles given by a corner and two edges, (n, 3) each."""
-    direction = np.ascontiguousarray(direction / np.linalg.norm(direction), dtype=np.float64)
-    origin = np.ascontiguousarray(origin, dtype=np.float64)
-    t = _nearest_hit_distance(
-        np.ascontiguousarray(a), np.ascontiguousarray(edge1), np.ascontiguousarray(edge2),
-        origin, direction,
-    )  # fmt: skip
     if not np.isfinite(t):
         return None
     return origin + t * direction
@@ -106,28 +88,10 @@ def _nearest_hit_distance(
     direction: NDArray[np.float64],
 ) -> float:
     """The smallest t > 0 with origin + t direction on a triangle (Möller-Trumbore), inf if
-    none."""
+    none: every triangle tested."""
     best = np.inf
-    dx, dy, dz = direction[0], direction[1], direction[2]
     for k in range(a.shape[0]):
-        e1x, e1y, e1z = edge1[k, 0], edge1[k, 1], edge1[k, 2]
-        e2x, e2y, e2z = edge2[k, 0], edge2[k, 1], edge2[k, 2]
-        px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
-        det = e1x * px + e1y * py + e1z * pz
-        if abs(det) <= 1e-18:
-            continue
-        inv = 1.0 / det
-        sx, sy, sz = origin[0] - a[k, 0], origin[1] - a[k, 1], origin[2] - a[k, 2]
-        u = (sx * px + sy * py + sz * pz) * inv
-        if u < 0.0 or u > 1.0:
-            continue
-        qx, qy, qz = sy * e1z - sz * e1y, sz * e1x - sx * e1z, sx * e1y - sy * e1x
-        v = (qx * dx + qy * dy + qz * dz) * inv
-        if v < 0.0 or u + v > 1.0:
-            continue
-        t = (e2x * qx + e2y * qy + e2z * qz) * inv
-        if 0.0 < t < best:
-            best = t
+        best = min(best, triangle_hit(a, edge1, edge2, k, origin, direction))
     return best
 
 
@@ -207,7 +171,8 @@ def radial_roll_rad(shape: ProbeShape, direction: NDArray[np.float64]) -> float:
 
 class RestSkin:
     """The skin at rest (the collision surface, or the volume's boundary) for ray queries,
-    its triangles' corners and area normals computed once.
+    its triangles' corners and area normals, and a grid over them
+    (:class:`tissue.contact.ray_grid.TriangleGrid`), computed once.
 
     Args:
         mesh: the tissue mesh.
@@ -222,7 +187,7 @@ class RestSkin:
         self.vertices = vertices
         self.triangles = surface.triangles
         a, b, c = (vertices[surface.triangles[:, i]] for i in range(3))
-        self._corner, self._edge1, self._edge2 = a, b - a, c - a
+        self._grid = TriangleGrid(a, b - a, c - a)
         self._area_normals = 0.5 * np.cross(b - a, c - a)
         self._centroids = (a + b + c) / 3.0
 
@@ -237,13 +202,15 @@ class RestSkin:
             TissueInputError: the ray from ``point`` along ``up`` meets no skin.
         """
         direction = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=np.float64)
+        direction = direction / np.linalg.norm(direction)
         origin = np.asarray(point, dtype=np.float64)
-        hit = _first_hit(self._corner, self._edge1, self._edge2, origin, direction)
-        if hit is None:
+        t = self._grid.nearest_hit(origin, direction)
+        if not np.isfinite(t):
             raise TissueInputError(
                 f"no skin above the point {np.round(origin, 4).tolist()} along "
                 f"{np.round(direction, 3).tolist()}; choose a point inside the tissue"
             )
+        hit = origin + t * direction
         normal = _area_normal_within(self._centroids, self._area_normals, hit, _NORMAL_RADIUS_M)
         return hit, normal / np.linalg.norm(normal)
 
