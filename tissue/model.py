@@ -333,7 +333,9 @@ class Tissue:
             direction = np.asarray(direction_world, dtype=np.float64).reshape(-1)
         shape = self._resolved.probe_shape
         roll = radial_roll_rad(shape, direction) if roll_rad is None else float(roll_rad)
-        return first_contact_pose(self._model.skin, mesh.nodes, shape, target, direction, roll)
+        return first_contact_pose(
+            self._model.skin, mesh.nodes, shape, target, direction, roll, self._rest_skin_query()
+        )
 
     def rest_skin_normal(
         self, point_m: ArrayLike, direction: ArrayLike | None = None

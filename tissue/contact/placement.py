@@ -14,9 +14,14 @@ from tissue.probe import Probe, ProbeShape
 
 # Iterations of the first-contact search; each removes the overlap found at the last pose.
 _CONTACT_SEARCH_ITERATIONS = 8
-# The first-contact search looks first at the skin points this close to the probe's box at
-# the ray's hit [m] (a fine skin has thousands; those far from the probe cannot touch it).
-_SEARCH_MARGIN_M = 0.03
+# The first-contact search looks first at the skin points this close to the probe's box
+# across its pressing axis [m] (a fine skin has thousands; those beside the probe cannot
+# touch it as it moves along the axis).
+_SEARCH_MARGIN_M = 0.002
+# The first-contact search's step divides the gap by the probe normal's share along the
+# pressing direction at the nearest point, at least this (past 60 degrees it moves by twice
+# the gap and converges linearly, as on the probe's side).
+_LEAST_FACING = 0.5
 # Skin triangles within this distance of a skin point give its normal [m].
 _NORMAL_RADIUS_M = 0.008
 
@@ -102,12 +107,15 @@ def first_contact_pose(
     target_point: NDArray[np.float64],
     direction: NDArray[np.float64],
     roll_rad: float = 0.0,
+    rest_skin: RestSkin | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """The pose at which the probe, pressing along ``direction``, first touches the surface.
 
     The probe's face centre is aimed at the skin point where the line through
     ``target_point`` along ``direction`` enters the surface; the probe is then backed off
     along ``direction`` until no surface point lies inside it and one touches it.
+    ``rest_skin``: the same surface at rest, whose grid finds that point (for
+    ``node_positions`` at rest; None: every triangle is tested).
 
     Returns:
         (position [m] (3,), quaternion wxyz (4,)).
@@ -120,7 +128,11 @@ def first_contact_pose(
     vertices = surface.positions(node_positions)
     extent = float(np.max(np.ptp(node_positions, axis=0)))
     origin = np.asarray(target_point, dtype=np.float64) - 2.0 * extent * direction
-    hit = ray_surface_hit(vertices, surface.triangles, origin, direction)
+    if rest_skin is None:
+        hit = ray_surface_hit(vertices, surface.triangles, origin, direction)
+    else:
+        t = rest_skin.nearest_hit(origin, direction)
+        hit = origin + t * direction if np.isfinite(t) else None
     if hit is None:
         raise TissueInputError(
             f"the line through {np.round(target_point, 4).tolist()} along "
@@ -129,20 +141,33 @@ def first_contact_pose(
         )
     probe = Probe.looking_along(shape, hit, direction, roll_rad=roll_rad)
     position = probe.position_world.copy()
-    # The search moves the probe along its axis by the overlap each time: the skin points
-    # that can set it lie near the probe's box at the hit. The others are checked at the
-    # end, and the search goes on over all points should one of them be closest.
-    candidates = vertices[probe.near(vertices, _SEARCH_MARGIN_M)]
+    # The search moves the probe along its pressing axis (the probe frame's y) by the
+    # overlap each time: the skin points that can set it lie across that axis from the
+    # probe's box, within a margin, at any height. The others are checked at the end, and
+    # the search goes on over all points should one of them be closest.
+    across = probe.to_probe_frame(vertices)[:, [0, 2]]
+    bounds = probe.shape.local_bounds_m()[:, [0, 2]]
+    candidates = vertices[
+        np.all(
+            (across >= bounds[0] - _SEARCH_MARGIN_M) & (across <= bounds[1] + _SEARCH_MARGIN_M),
+            axis=1,
+        )
+    ]
     for points in (candidates, vertices):
         if points.shape[0] == 0:
             continue
         for _ in range(_CONTACT_SEARCH_ITERATIONS):
             probe.set_pose(position, probe.quat_wxyz)
-            distance, _ = probe.signed_distance_world(points)
-            closest = float(distance.min())
+            distance, normals = probe.signed_distance_world(points)
+            nearest = int(np.argmin(distance))
+            closest = float(distance[nearest])
             if abs(closest) < 1e-9:
                 break
-            position = position + closest * direction  # back off by the overlap, or close
+            # Back off by the overlap, or close the gap: moved along the direction, the
+            # probe's surface meets the point at the rate its normal faces the direction
+            # (1 on the face, less on the rounded rim; a Newton step), at least half.
+            facing = max(float(normals[nearest] @ direction), _LEAST_FACING)
+            position = position + (closest / facing) * direction
         probe.set_pose(position, probe.quat_wxyz)
         if points is not vertices:
             distance, _ = probe.signed_distance_world(vertices)
@@ -191,6 +216,11 @@ class RestSkin:
         self._area_normals = 0.5 * np.cross(b - a, c - a)
         self._centroids = (a + b + c) / 3.0
 
+    def nearest_hit(self, origin: NDArray[np.float64], direction: NDArray[np.float64]) -> float:
+        """The smallest t > 0 with ``origin`` + t ``direction`` on the skin at rest, inf if
+        none (:meth:`tissue.contact.ray_grid.TriangleGrid.nearest_hit`)."""
+        return self._grid.nearest_hit(origin, direction)
+
     def normal_where_leaving(
         self, point: NDArray[np.float64], up: NDArray[np.float64] | None = None
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -204,7 +234,7 @@ class RestSkin:
         direction = np.array([0.0, 0.0, 1.0]) if up is None else np.asarray(up, dtype=np.float64)
         direction = direction / np.linalg.norm(direction)
         origin = np.asarray(point, dtype=np.float64)
-        t = self._grid.nearest_hit(origin, direction)
+        t = self.nearest_hit(origin, direction)
         if not np.isfinite(t):
             raise TissueInputError(
                 f"no skin above the point {np.round(origin, 4).tolist()} along "
