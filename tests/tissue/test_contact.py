@@ -1100,3 +1100,29 @@ def test_online_prescribed_nodes_let_go_when_they_would_pull(block) -> None:
     assert min(forces) >= -0.02 * max(forces), (min(forces), max(forces))
     assert released > 0 and model.contact_nodes.size == 0
     assert abs(forces[-1]) < 1e-9
+
+
+def test_kept_compliance_cross_entries_are_the_sparse_rows_product() -> None:
+    """The compiled n_q^T E_q F^-1 E_u^T n_u of the compliance cache's column updates equals
+    the sparse rows (constrained dofs dropped, entries in dof order) times the columns, bit
+    for bit."""
+    import scipy.sparse as sp
+
+    from tissue.contact.compliance import _embedded_rows_times
+
+    rng = np.random.default_rng(4)
+    nodes, k, u = 60, 25, 7
+    tet_nodes = np.array([rng.choice(nodes, 4, replace=False) for _ in range(k)])
+    weights = rng.dirichlet(np.ones(4), size=k)
+    normals = rng.normal(size=(k, 3))
+    constrained = rng.uniform(size=3 * nodes) < 0.2
+    columns = rng.normal(size=(3 * nodes, u))
+    rows = np.broadcast_to(np.arange(k)[:, None, None], (k, 4, 3))
+    dofs = 3 * tet_nodes[:, :, None] + np.arange(3)
+    values = weights[:, :, None] * normals[:, None, :]
+    keep = ~constrained[dofs]
+    matrix = sp.csr_matrix((values[keep], (rows[keep], dofs[keep])), shape=(k, 3 * nodes))
+    matrix.sum_duplicates()
+    out = np.zeros((k, u))
+    _embedded_rows_times(tet_nodes, weights, normals, constrained, columns, out)
+    np.testing.assert_array_equal(out, matrix @ columns)
