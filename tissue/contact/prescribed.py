@@ -62,6 +62,7 @@ from numpy.typing import NDArray
 
 from tissue.contact.fe_model import FEContactModel
 from tissue.contact.penalty import (
+    OFFSET_REACH_SHARE,
     PenaltyTerm,
     augmented_solve,
     augmented_step,
@@ -322,7 +323,7 @@ class PrescribedContact(FEContactModel):
             result = self.sim.step(dt=h)
         elif settled:
             started = time.perf_counter()
-            self._guard.predict_offsets(self.params.skin_guard_tolerance_m)
+            self._guard.predict_offsets(OFFSET_REACH_SHARE * self.params.skin_guard_tolerance_m)
             outcome, guard_rounds, set_rounds = self._settled_step(h, planes)
             result = self.sim.commit(outcome, h, started)
             self._guard.record_forces(self.sim.positions)
