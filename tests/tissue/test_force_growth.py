@@ -55,7 +55,7 @@ ALLOWED_FALL = 0.05
 #: The least force a press must reach [N] (ForceScan's band starts at 1 N).
 LEAST_FORCE_N = 1.5
 #: The depth [m] at which the tissue slips at (level, lesion) (see the module docstring), as
-#: LM measured it (penalty slips a step earlier at 623 tets, lesion 10; PBD later): each
+#: LM measured it (penalty slips a step later at 623 tets, lesion 10; PBD later): each
 #: press there stops a step short of it.
 SLIP_FROM_M = {
     (623, 10): 0.018,

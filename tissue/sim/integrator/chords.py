@@ -28,10 +28,11 @@ class ChordHandOver:
 
     LM's robust steps use it (:mod:`tissue.contact.lagrange`). This integrator's own Newton
     does not: there a chord needs the constrained dofs on their targets from the first
-    iterate, and prescribed displacement moves its targets every step, while penalty's
-    augmented rounds pass copies of the state, which never continue a step (nor start from
-    the extrapolation: letting them made its 26,220-tet press slower, 1,354 -> 1,667 ms per
-    simulated second, 1,749 with the hand-over too, and gained nothing at 4,126 tets).
+    iterate, and prescribed displacement moves its targets every step; penalty's springs
+    change k with the largest offset from step to step, and a matrix handed on to its steps
+    cost more Newton iterations than the assemblies it saved (the bench-peer press at 2,549
+    tets: 88 -> 103 iterations for 71 -> 65 assemblies; with k changed only by factors of
+    two, 98 for 53), and no less time.
     """
 
     def __init__(self, max_backoff_steps: int = IntegratorConfig.chord_backoff_max_steps) -> None:
