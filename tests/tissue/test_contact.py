@@ -7,6 +7,7 @@ from dataclasses import replace
 import numba
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 
 from tissue.contact import base as contact_base
 from tissue.contact import contact_method, make_contact_model
@@ -537,6 +538,36 @@ def test_predicted_offsets_save_rounds_and_keep_the_answer(block, monkeypatch) -
     kept, kept_rounds = press(False)
     assert predicted_rounds < 0.6 * kept_rounds
     assert predicted == pytest.approx(kept, rel=2 * FORCE_TOLERANCE)
+
+
+def test_augmented_penalty_follows_lm_on_the_phantom_in_few_rounds() -> None:
+    """Penalty's rounds are the method of multipliers, converging on LM's constrained
+    answer: pressed 15 mm into the 623-tet phantom's lesion 4 under the 2 mm skin, its
+    force follows LM's within 1.5 % at every step, in at most 2.6 times LM's Newton
+    iterations (every round counted). With k raised only for the whole penetration
+    tolerance and re-solves from x + h v, it was 2.6 % and 3.2 times (217 iterations against
+    67); now about 0.7 % and 2.3 times (docs/design-decisions.md)."""
+    import tissue
+
+    def press(method: str) -> tuple[NDArray[np.float64], int]:
+        t = tissue.make_tissue(mesh=623, contact=method, profile="robust", collision_edge_m=0.002)
+        position, quat = t.touching_pose(t.lesions[3].rest_centre_m)
+        pressing = tissue.pressing_direction(quat)
+        t.reset(position, quat)
+        forces, iterations = [], 0
+        for k in range(1, 31):
+            step = t.step(position + k * 0.0005 * pressing, quat)
+            assert step.status is StepStatus.OK
+            forces.append(float(-step.force_world_n @ pressing))
+            iterations += step.diagnostics.iterations
+        return np.array(forces), iterations
+
+    lm, lm_iterations = press("lm")
+    penalty, penalty_iterations = press("penalty")
+    assert lm[-1] > 3.0  # a press into the working range (ForceScan's band is 1-3 N)
+    gap = np.abs(penalty - lm) / np.maximum(lm, 0.05)
+    assert gap.max() <= 0.015, (gap.max(), np.round(penalty - lm, 4).tolist())
+    assert penalty_iterations <= 2.6 * lm_iterations, (penalty_iterations, lm_iterations)
 
 
 @pytest.mark.parametrize("method", ["penalty", "prescribed"])
