@@ -42,6 +42,11 @@ numba threads for every phantom level up to 26,220 tets and any mesh under 40,00
 (13,333 nodes); from the level of 105,004 tets up, the FE contact methods' solver sums follow
 the thread count (``tissue.configure_threads(threads=1)`` makes them repeatable; ``pbd``
 keeps its bits). Measured figures: docs/tissue-model.md, "Threads".
+
+Vector environments: ``gymnasium.make_vec`` (``sync``; ``async`` with workers started by
+fork, forkserver or spawn) and SB3's ``SubprocVecEnv``; ``metadata["autoreset_mode"]`` is
+``AutoresetMode.NEXT_STEP`` (the step after an episode ends returns the next one's first
+observation, reward 0).
 """
 
 from __future__ import annotations
@@ -54,6 +59,7 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 from gymnasium import spaces
+from gymnasium.vector import AutoresetMode
 from numpy.typing import NDArray
 
 import tissue
@@ -153,7 +159,17 @@ _COMMON_ARGUMENTS = (
 class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
     """The coupled arm, probe and breast; tasks subclass it (see the module docstring)."""
 
-    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 50}  # noqa: RUF012
+    #: ``autoreset_mode`` (Gymnasium 1.x): how a vector environment of a task resets an
+    #: ended episode, the mode it is tested under: the ``step`` after the one that ended it
+    #: returns the next episode's first observation, reward 0, the action ignored (the
+    #: default of Gymnasium's ``SyncVectorEnv`` and ``AsyncVectorEnv``, which
+    #: ``gymnasium.make_vec`` builds). SB3's vector environments reset within the ending
+    #: step instead, the last observation in ``info["terminal_observation"]``.
+    metadata = {  # noqa: RUF012
+        "render_modes": ["rgb_array", "human"],
+        "render_fps": 50,
+        "autoreset_mode": AutoresetMode.NEXT_STEP,
+    }
 
     #: The simulated effects of the observation terms every task shares (a task's
     #: ``TERM_EFFECTS`` adds its own terms; see :data:`envs.effects.EFFECTS`).

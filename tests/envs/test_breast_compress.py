@@ -335,15 +335,49 @@ def test_a_rendered_frame_shows_the_breast_and_the_probe() -> None:
     assert changed(frame, env.render()) > 0.005
 
 
-@pytest.mark.parametrize("mode", ["sync", "async"])
-def test_vector_environments(mode: str) -> None:
-    vec = gym.make_vec(ENV_ID, num_envs=2, vectorization_mode=mode, contact="lm", mesh=MESH)
-    obs, _ = vec.reset(seed=0)
-    for _ in range(3):
-        obs, reward, terminated, truncated, info = vec.step(
-            np.tile(np.array([0, 0.2, 0, 0, 0, 0], dtype=np.float32), (2, 1))
-        )
-    assert obs["lesion"].shape == (2, 4) and np.all(np.isfinite(reward))
+@pytest.mark.parametrize(
+    "mode, context",
+    [
+        ("sync", None),
+        ("async", "fork"),
+        pytest.param("async", "forkserver", marks=pytest.mark.slow),
+        pytest.param("async", "spawn", marks=pytest.mark.slow),
+    ],
+)
+def test_vector_environments_reset_as_the_env_declares(mode: str, context: str | None) -> None:
+    """Gymnasium's vector environments, workers started every way (the tissue's kernels are
+    built in this process first: fork must survive them), reset an ended episode as
+    ``metadata["autoreset_mode"]`` declares: the step after the end returns the next
+    episode's first observation, reward 0, neither terminated nor truncated."""
+    from gymnasium.vector import AutoresetMode
+
+    single = _make("lm")
+    mode_declared = single.metadata["autoreset_mode"]
+    assert mode_declared == AutoresetMode.NEXT_STEP
+    single.close()
+    vector_kwargs = {} if context is None else {"context": context}
+    vec = gym.make_vec(
+        ENV_ID,
+        num_envs=2,
+        vectorization_mode=mode,
+        vector_kwargs=vector_kwargs,
+        contact="lm",
+        mesh=MESH,
+        max_episode_steps=2,
+    )
+    assert vec.metadata["autoreset_mode"] == mode_declared
+    vec.reset(seed=0)
+    press = np.tile(np.array([0, 0.2, 0, 0, 0, 0], dtype=np.float32), (2, 1))
+    for _ in range(2):
+        obs, reward, terminated, truncated, _ = vec.step(press)
+    assert np.all(truncated) and np.all(np.isfinite(reward))
+    assert np.all(np.abs(obs["wrench"]).max(axis=1) > 0.01)  # the probe presses the skin
+    obs, reward, terminated, truncated, _ = vec.step(press)
+    # The reset step: action ignored, the start seeded by the same generator (not seed 0's).
+    assert reward.tolist() == [0.0, 0.0]
+    assert not np.any(terminated) and not np.any(truncated)
+    assert obs["lesion"].shape == (2, 4) and np.all(np.isfinite(obs["wrench"]))
+    assert np.all(np.abs(obs["wrench"]) < 1e-9)  # the probe starts clear of the skin again
     vec.close()
 
 
