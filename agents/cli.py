@@ -299,7 +299,7 @@ def _build_parser() -> argparse.ArgumentParser:
         help="a training step's cost by phase: the scripted press, exploring, probegym train",
     )
     train_bench.add_argument(
-        "--ids", default=None, help="comma-separated env ids; default BreastCompress"
+        "--ids", default=None, help="comma-separated env ids; default probegym/BreastCompress-v2"
     )
     train_bench.add_argument(
         "--contact", "--methods", dest="methods", default=None, help="comma-separated; default lm"

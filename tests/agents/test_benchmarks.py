@@ -230,7 +230,7 @@ def test_bench_train_times_the_press_and_the_exploring_step(tmp_path: Path) -> N
     press, exploring = payload["records"]
     assert (press["phase"], exploring["phase"]) == ("press", "exploring")
     for record in (press, exploring):
-        assert record["env_id"] == "probegym/BreastCompress-v1" and record["contact"] == "lm"
+        assert record["env_id"] == "probegym/BreastCompress-v2" and record["contact"] == "lm"
         assert record["tets"] == 571 and record["profile"] == "robust"
         assert record["collision_edge_m"] == 0.002  # the environments' default skin
         assert record["steps_per_s"] > 0.0 and record["newton_iterations_mean"] >= 1.0

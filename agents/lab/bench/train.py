@@ -56,7 +56,10 @@ from agents.lab.bench.env import scripted_press
 from agents.lab.bench.report import BenchRecord, MarkdownTable, write_records
 from tissue import ConfigError
 
-DEFAULT_IDS = ("probegym/BreastCompress-v1",)
+#: The task users train now (v2: 3 mm a step at full action, sized to its 1 mm band as the
+#: teaching versions are; v0 and v1 move 5 mm, and their exploring steps cost more Newton
+#: iterations for it: ``--ids`` measures them).
+DEFAULT_IDS = ("probegym/BreastCompress-v2",)
 DEFAULT_METHODS = ("lm",)
 DEFAULT_LEVEL = 1363
 #: Exploring steps drawn per record (episodes reset as they end).
