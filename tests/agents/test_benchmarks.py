@@ -263,6 +263,48 @@ def test_bench_train_replay_times_a_policys_own_steps_in_contact() -> None:
     assert record["episodes"] >= 2  # the scripted press succeeds in under 80 steps
 
 
+def test_bench_train_steps_its_phases_in_turn_and_each_as_alone() -> None:
+    """Stepped in turn (so that a machine's drifting speed reaches every phase alike), the
+    press, the exploring actions and a policy's replay take the same steps, Newton
+    iterations and episodes as each run on its own."""
+    from agents.lab.bench.train import (
+        exploring_record,
+        phase_records,
+        press_record,
+        replay_record,
+    )
+    from agents.learning.policies.compression import CompressionPolicy
+
+    env_id, level, steps = "probegym/BreastCompress-v2", 623, 60
+    together = phase_records(env_id, "lm", level, CompressionPolicy(), steps=steps)
+    alone = [
+        press_record(env_id, "lm", level),
+        exploring_record(env_id, "lm", level, steps=steps),
+        replay_record(env_id, "lm", level, CompressionPolicy(), steps=steps),
+    ]
+    assert [r["phase"] for r in together] == ["press", "exploring", "replay"]
+    for mixed, single in zip(together, alone, strict=True):
+        for key in ("steps_timed", "newton_iterations_mean", "contact_share", "episodes"):
+            assert mixed[key] == single[key], (mixed["phase"], key)
+
+
+def test_interleaved_runs_advance_by_their_share_of_work() -> None:
+    from agents.lab.bench.train import TimedRun, _interleave
+
+    order: list[str] = []
+
+    def run(name: str, steps: int) -> TimedRun:
+        for step in range(1, steps + 1):
+            order.append(name)
+            yield step / steps
+        return {"phase": name}
+
+    records = _interleave([run("a", 2), run("b", 6)])
+    assert records == [{"phase": "a"}, {"phase": "b"}]
+    # b takes three steps for each of a's: neither runs far ahead of the other.
+    assert order == ["a", "b", "b", "b", "a", "b", "b", "b"]
+
+
 def test_bench_train_refuses_a_model_of_another_task_before_any_work(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -34,6 +34,12 @@ one environment in this process, records with a ``phase`` key:
   fresh environments reset with the same seeds; ``thread_speedup`` is the sequential wall
   time over the threaded one (``n_envs`` at best, 1 where the step holds the GIL).
 
+The ``press``, ``exploring`` and ``replay`` environments live side by side and step in turn,
+in proportion to their planned steps (:func:`phase_records`): a shared machine's speed
+drifts by up to 1.5 x within minutes, and phases timed one after another took that drift
+into their ratio (the same scripted press, timed before two ids' exploring phases in one
+run, gave 152 and 111 steps per second).
+
 ``exploring_over_press`` is the ratio the training-speed work aims to raise to 0.85;
 ``train_over_press`` the end-to-end rate over (environments that have a core each x the
 press's rate), which it aims to raise to 0.75 for PPO.
@@ -45,7 +51,7 @@ from __future__ import annotations
 import os
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 from pathlib import Path
 from typing import Any
 
@@ -110,29 +116,81 @@ def _identity(env: Any, env_id: str, contact: str, level: int, phase: str) -> di
 
 def press_record(env_id: str, contact: str, level: int) -> dict[str, Any]:
     """The ``press`` phase (see the module docstring): every step timed, as ``bench env``."""
-    env = _make(env_id, contact, level)
-    observation, _ = env.reset(seed=0)
-    record = _identity(env, env_id, contact, level, "press")
-    timed = _time_steps(
-        env, _replaying(scripted_press(env.unwrapped)), observation, contact_only=False
-    )
-    env.close()
-    return record | timed
+    return _run_alone(_press_run(env_id, contact, level))
 
 
 def exploring_record(
     env_id: str, contact: str, level: int, steps: int = EXPLORING_STEPS, seed: int = 0
 ) -> dict[str, Any]:
     """The ``exploring`` phase (see the module docstring): the steps in contact timed."""
+    return _run_alone(_exploring_run(env_id, contact, level, steps, seed))
+
+
+def phase_records(
+    env_id: str, contact: str, level: int, policy: Any = None, steps: int = EXPLORING_STEPS
+) -> list[dict[str, Any]]:
+    """The ``press``, ``exploring`` and (given a trained ``policy``) ``replay`` records, their
+    environments stepped in turn (:func:`_interleave`), so that the ratios between them hold
+    on a machine whose speed drifts while they run."""
+    runs = [_press_run(env_id, contact, level), _exploring_run(env_id, contact, level, steps)]
+    if policy is not None:
+        runs.append(_replay_run(env_id, contact, level, policy, steps))
+    return _interleave(runs)
+
+
+#: A phase's timed run: yields its share of work done (0-1] after each step, returns its
+#: record.
+TimedRun = Generator[float, None, dict[str, Any]]
+
+
+def _press_run(env_id: str, contact: str, level: int) -> TimedRun:
+    env = _make(env_id, contact, level)
+    observation, _ = env.reset(seed=0)
+    record = _identity(env, env_id, contact, level, "press")
+    actions = scripted_press(env.unwrapped)
+    timed = yield from _timed_steps(
+        env, _replaying(actions), observation, len(actions), contact_only=False
+    )
+    env.close()
+    return record | timed
+
+
+def _exploring_run(
+    env_id: str, contact: str, level: int, steps: int = EXPLORING_STEPS, seed: int = 0
+) -> TimedRun:
     env = _make(env_id, contact, level)
     low, high = env.action_space.low, env.action_space.high
     draws = _replaying(_exploring_actions(low.shape, low, high, seed, steps, env_id))
     observation, _ = env.reset(seed=1)
     record = _identity(env, env_id, contact, level, "exploring")
-    record |= _time_steps(env, draws, observation, contact_only=True, next_seed=2)
+    record |= yield from _timed_steps(
+        env, draws, observation, steps, contact_only=True, next_seed=2
+    )
     env.close()
     record["action_std"] = exploring_spread(env_id)
     return record
+
+
+def _run_alone(run: TimedRun) -> dict[str, Any]:
+    """A timed run stepped to its end on its own."""
+    return _interleave([run])[0]
+
+
+def _interleave(runs: list[TimedRun]) -> list[dict[str, Any]]:
+    """Step ``runs`` in turn, the one that has done the smallest share of its work next, until
+    each ends; their records, in order. A machine that slows down for a while (shared
+    machines do, by 1.5 x within minutes) then slows every phase alike."""
+    done: list[float] = [0.0] * len(runs)
+    records: list[dict[str, Any] | None] = [None] * len(runs)
+    live = set(range(len(runs)))
+    while live:
+        index = min(live, key=lambda i: done[i])
+        try:
+            done[index] = next(runs[index])
+        except StopIteration as ended:
+            records[index] = ended.value
+            live.discard(index)
+    return [record for record in records if record is not None]
 
 
 def load_replayed_policy(model: Path, env_ids: list[str]) -> Any:
@@ -163,6 +221,12 @@ def replay_record(
 ) -> dict[str, Any]:
     """The ``replay`` phase (see the module docstring): ``policy``'s own actions for
     ``steps`` steps, the steps in contact timed."""
+    return _run_alone(_replay_run(env_id, contact, level, policy, steps))
+
+
+def _replay_run(
+    env_id: str, contact: str, level: int, policy: Any, steps: int = EXPLORING_STEPS
+) -> TimedRun:
     env = _make(env_id, contact, level)
     observation, _ = env.reset(seed=1)
     record = _identity(env, env_id, contact, level, "replay")
@@ -171,7 +235,7 @@ def replay_record(
     def act(seen: dict[str, Any]) -> np.ndarray | None:
         return None if next(budget, None) is None else policy(seen)
 
-    record |= _time_steps(env, act, observation, contact_only=True, next_seed=2)
+    record |= yield from _timed_steps(env, act, observation, steps, contact_only=True, next_seed=2)
     env.close()
     return record
 
@@ -310,19 +374,20 @@ def _replaying(actions: list[np.ndarray]) -> Actor:
     return lambda _: next(remaining, None)
 
 
-def _time_steps(
+def _timed_steps(
     env: Any,
     act: Actor,
     observation: dict[str, Any],
+    planned: int,
     contact_only: bool,
     next_seed: int | None = None,
-) -> dict[str, Any]:
+) -> TimedRun:
     """Step ``env`` (just reset to ``observation``) with ``act``'s actions until it gives
-    None, and time each step (CPU time; the action is chosen outside the clock). A step is
-    in contact when its tissue step starts with a pressing force; ``contact_only`` times
-    only those. An episode that ends stops the run (``next_seed`` None) or resets with the
-    next seed. Returns :func:`_rates`' fields, ``contact_share`` (of the steps taken) and
-    ``episodes``."""
+    None, and time each step (CPU time; the action is chosen outside the clock), yielding
+    the steps taken over ``planned`` after each. A step is in contact when its tissue step
+    starts with a pressing force; ``contact_only`` times only those. An episode that ends
+    stops the run (``next_seed`` None) or resets with the next seed. Returns
+    :func:`_rates`' fields, ``contact_share`` (of the steps taken) and ``episodes``."""
     unwrapped = env.unwrapped
     cpu, iterations, in_contact = [], [], []
     episodes = 1
@@ -340,6 +405,7 @@ def _time_steps(
                 break
             observation, _ = env.reset(seed=next_seed + episodes - 1)
             episodes += 1
+        yield len(in_contact) / max(planned, 1)
     rates = _rates(cpu, iterations)
     rates["contact_share"] = float(np.mean(in_contact)) if in_contact else 0.0
     rates["episodes"] = episodes
@@ -388,15 +454,13 @@ def run_train_benchmark(
     provenance = BenchRecord("probegym bench train: a training step's cost, by phase", command)
     for env_id in ids:
         for contact in methods or DEFAULT_METHODS:
-            press = press_record(env_id, contact, level)
-            exploring = exploring_record(env_id, contact, level)
-            _judge_phase(exploring, press)
-            phases = [press, exploring]
-            if replayed is not None and replayed.config.get("env_id") == env_id:
-                replay = replay_record(env_id, contact, level, replayed)
-                replay["model"] = str(model)
-                _judge_phase(replay, press)
-                phases.append(replay)
+            replaying = replayed is not None and replayed.config.get("env_id") == env_id
+            phases = phase_records(env_id, contact, level, replayed if replaying else None)
+            press = phases[0]
+            for record in phases[1:]:
+                _judge_phase(record, press)
+                if record["phase"] == "replay":
+                    record["model"] = str(model)
             for record in phases:
                 records.append(record)
                 _print(record)
