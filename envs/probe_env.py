@@ -45,8 +45,10 @@ keeps its bits). Measured figures: docs/tissue-model.md, "Threads".
 
 Vector environments: ``gymnasium.make_vec`` (``sync``; ``async`` with workers started by
 fork, forkserver or spawn) and SB3's ``SubprocVecEnv``; ``metadata["autoreset_mode"]`` is
-``AutoresetMode.NEXT_STEP`` (the step after an episode ends returns the next one's first
-observation, reward 0).
+``AutoresetMode.NEXT_STEP``, the default of Gymnasium's ``SyncVectorEnv`` and
+``AsyncVectorEnv``: the step after an episode ends returns the next one's first observation,
+reward 0, the action ignored (SB3's reset within the ending step instead, the last
+observation in ``info["terminal_observation"]``).
 """
 
 from __future__ import annotations
@@ -159,12 +161,8 @@ _COMMON_ARGUMENTS = (
 class ProbeEnv(gym.Env[dict[str, NDArray[Any]], NDArray[np.float32]]):
     """The coupled arm, probe and breast; tasks subclass it (see the module docstring)."""
 
-    #: ``autoreset_mode`` (Gymnasium 1.x): how a vector environment of a task resets an
-    #: ended episode, the mode it is tested under: the ``step`` after the one that ended it
-    #: returns the next episode's first observation, reward 0, the action ignored (the
-    #: default of Gymnasium's ``SyncVectorEnv`` and ``AsyncVectorEnv``, which
-    #: ``gymnasium.make_vec`` builds). SB3's vector environments reset within the ending
-    #: step instead, the last observation in ``info["terminal_observation"]``.
+    #: ``autoreset_mode``: the mode a task's vector environments are tested under, Gymnasium's
+    #: default (the module docstring, "Vector environments").
     metadata = {  # noqa: RUF012
         "render_modes": ["rgb_array", "human"],
         "render_fps": 50,

@@ -289,7 +289,7 @@ def test_bench_train_steps_its_phases_in_turn_and_each_as_alone() -> None:
 
 
 def test_interleaved_runs_advance_by_their_share_of_work() -> None:
-    from agents.lab.bench.train import TimedRun, _interleave
+    from agents.lab.bench.timed_runs import TimedRun, interleave
 
     order: list[str] = []
 
@@ -299,7 +299,7 @@ def test_interleaved_runs_advance_by_their_share_of_work() -> None:
             yield step / steps
         return {"phase": name}
 
-    records = _interleave([run("a", 2), run("b", 6)])
+    records = interleave([run("a", 2), run("b", 6)])
     assert records == [{"phase": "a"}, {"phase": "b"}]
     # b takes three steps for each of a's: neither runs far ahead of the other.
     assert order == ["a", "b", "b", "b", "a", "b", "b", "b"]

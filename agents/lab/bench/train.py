@@ -36,9 +36,8 @@ one environment in this process, records with a ``phase`` key:
 
 The ``press``, ``exploring`` and ``replay`` environments live side by side and step in turn,
 in proportion to their planned steps (:func:`phase_records`): a shared machine's speed
-drifts by up to 1.5 x within minutes, and phases timed one after another took that drift
-into their ratio (the same scripted press, timed before two ids' exploring phases in one
-run, gave 152 and 111 steps per second).
+drifts by up to 1.5 x within minutes (docs/speed.md), and phases timed one after another
+took that drift into their ratio.
 
 ``exploring_over_press`` is the ratio the training-speed work aims to raise to 0.85;
 ``train_over_press`` the end-to-end rate over (environments that have a core each x the
@@ -51,7 +50,6 @@ from __future__ import annotations
 import os
 import tempfile
 import time
-from collections.abc import Callable, Generator
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +58,7 @@ import numpy as np
 from agents.lab.bench.contact import threading_environment
 from agents.lab.bench.env import scripted_press
 from agents.lab.bench.report import BenchRecord, MarkdownTable, write_records
+from agents.lab.bench.timed_runs import TimedRun, interleave, replaying, run_alone, timed_steps
 from tissue import ConfigError
 
 #: The task users train now (v2: 3 mm a step at full action, sized to its 1 mm band as the
@@ -116,31 +115,26 @@ def _identity(env: Any, env_id: str, contact: str, level: int, phase: str) -> di
 
 def press_record(env_id: str, contact: str, level: int) -> dict[str, Any]:
     """The ``press`` phase (see the module docstring): every step timed, as ``bench env``."""
-    return _run_alone(_press_run(env_id, contact, level))
+    return run_alone(_press_run(env_id, contact, level))
 
 
 def exploring_record(
     env_id: str, contact: str, level: int, steps: int = EXPLORING_STEPS, seed: int = 0
 ) -> dict[str, Any]:
     """The ``exploring`` phase (see the module docstring): the steps in contact timed."""
-    return _run_alone(_exploring_run(env_id, contact, level, steps, seed))
+    return run_alone(_exploring_run(env_id, contact, level, steps, seed))
 
 
 def phase_records(
     env_id: str, contact: str, level: int, policy: Any = None, steps: int = EXPLORING_STEPS
 ) -> list[dict[str, Any]]:
     """The ``press``, ``exploring`` and (given a trained ``policy``) ``replay`` records, their
-    environments stepped in turn (:func:`_interleave`), so that the ratios between them hold
-    on a machine whose speed drifts while they run."""
+    environments stepped in turn (:func:`~agents.lab.bench.timed_runs.interleave`), so that
+    the ratios between them hold on a machine whose speed drifts while they run."""
     runs = [_press_run(env_id, contact, level), _exploring_run(env_id, contact, level, steps)]
     if policy is not None:
         runs.append(_replay_run(env_id, contact, level, policy, steps))
-    return _interleave(runs)
-
-
-#: A phase's timed run: yields its share of work done (0-1] after each step, returns its
-#: record.
-TimedRun = Generator[float, None, dict[str, Any]]
+    return interleave(runs)
 
 
 def _press_run(env_id: str, contact: str, level: int) -> TimedRun:
@@ -148,8 +142,8 @@ def _press_run(env_id: str, contact: str, level: int) -> TimedRun:
     observation, _ = env.reset(seed=0)
     record = _identity(env, env_id, contact, level, "press")
     actions = scripted_press(env.unwrapped)
-    timed = yield from _timed_steps(
-        env, _replaying(actions), observation, len(actions), contact_only=False
+    timed = yield from timed_steps(
+        env, replaying(actions), observation, len(actions), contact_only=False
     )
     env.close()
     return record | timed
@@ -160,37 +154,13 @@ def _exploring_run(
 ) -> TimedRun:
     env = _make(env_id, contact, level)
     low, high = env.action_space.low, env.action_space.high
-    draws = _replaying(_exploring_actions(low.shape, low, high, seed, steps, env_id))
+    draws = replaying(_exploring_actions(low.shape, low, high, seed, steps, env_id))
     observation, _ = env.reset(seed=1)
     record = _identity(env, env_id, contact, level, "exploring")
-    record |= yield from _timed_steps(
-        env, draws, observation, steps, contact_only=True, next_seed=2
-    )
+    record |= yield from timed_steps(env, draws, observation, steps, contact_only=True, next_seed=2)
     env.close()
     record["action_std"] = exploring_spread(env_id)
     return record
-
-
-def _run_alone(run: TimedRun) -> dict[str, Any]:
-    """A timed run stepped to its end on its own."""
-    return _interleave([run])[0]
-
-
-def _interleave(runs: list[TimedRun]) -> list[dict[str, Any]]:
-    """Step ``runs`` in turn, the one that has done the smallest share of its work next, until
-    each ends; their records, in order. A machine that slows down for a while (shared
-    machines do, by 1.5 x within minutes) then slows every phase alike."""
-    done: list[float] = [0.0] * len(runs)
-    records: list[dict[str, Any] | None] = [None] * len(runs)
-    live = set(range(len(runs)))
-    while live:
-        index = min(live, key=lambda i: done[i])
-        try:
-            done[index] = next(runs[index])
-        except StopIteration as ended:
-            records[index] = ended.value
-            live.discard(index)
-    return [record for record in records if record is not None]
 
 
 def load_replayed_policy(model: Path, env_ids: list[str]) -> Any:
@@ -221,7 +191,7 @@ def replay_record(
 ) -> dict[str, Any]:
     """The ``replay`` phase (see the module docstring): ``policy``'s own actions for
     ``steps`` steps, the steps in contact timed."""
-    return _run_alone(_replay_run(env_id, contact, level, policy, steps))
+    return run_alone(_replay_run(env_id, contact, level, policy, steps))
 
 
 def _replay_run(
@@ -235,7 +205,7 @@ def _replay_run(
     def act(seen: dict[str, Any]) -> np.ndarray | None:
         return None if next(budget, None) is None else policy(seen)
 
-    record |= yield from _timed_steps(env, act, observation, steps, contact_only=True, next_seed=2)
+    record |= yield from timed_steps(env, act, observation, steps, contact_only=True, next_seed=2)
     env.close()
     return record
 
@@ -362,73 +332,6 @@ def train_record(
         "load_average": list(os.getloadavg()),
     }
     return record
-
-
-#: An action source for :func:`_time_steps`: the next action for an observation, None to stop.
-Actor = Callable[[dict[str, Any]], "np.ndarray | None"]
-
-
-def _replaying(actions: list[np.ndarray]) -> Actor:
-    """An actor that plays ``actions`` in order, whatever it observes, then stops."""
-    remaining = iter(actions)
-    return lambda _: next(remaining, None)
-
-
-def _timed_steps(
-    env: Any,
-    act: Actor,
-    observation: dict[str, Any],
-    planned: int,
-    contact_only: bool,
-    next_seed: int | None = None,
-) -> TimedRun:
-    """Step ``env`` (just reset to ``observation``) with ``act``'s actions until it gives
-    None, and time each step (CPU time; the action is chosen outside the clock), yielding
-    the steps taken over ``planned`` after each. A step is in contact when its tissue step
-    starts with a pressing force; ``contact_only`` times only those. An episode that ends
-    stops the run (``next_seed`` None) or resets with the next seed. Returns
-    :func:`_rates`' fields, ``contact_share`` (of the steps taken) and ``episodes``."""
-    unwrapped = env.unwrapped
-    cpu, iterations, in_contact = [], [], []
-    episodes = 1
-    while (action := act(observation)) is not None:
-        touching = unwrapped.normal_force_n(unwrapped.coupling.last_step) > 0.0
-        tic = time.process_time()
-        observation, _, terminated, truncated, _ = env.step(action)
-        elapsed = time.process_time() - tic
-        in_contact.append(touching)
-        if touching or not contact_only:
-            cpu.append(elapsed)
-            iterations.append(_newton_iterations(unwrapped))
-        if terminated or truncated:
-            if next_seed is None:
-                break
-            observation, _ = env.reset(seed=next_seed + episodes - 1)
-            episodes += 1
-        yield len(in_contact) / max(planned, 1)
-    rates = _rates(cpu, iterations)
-    rates["contact_share"] = float(np.mean(in_contact)) if in_contact else 0.0
-    rates["episodes"] = episodes
-    return rates
-
-
-def _newton_iterations(unwrapped: Any) -> int:
-    step = unwrapped.coupling.last_step
-    return 0 if step is None else int(step.diagnostics.iterations)
-
-
-def _rates(cpu: list[float], iterations: list[int]) -> dict[str, Any]:
-    """Steps per second from the median CPU time of the timed steps, and how many were timed."""
-    if not cpu:
-        return {"steps_timed": 0, "steps_per_s": None}
-    median = float(np.median(cpu))
-    return {
-        "steps_timed": len(cpu),
-        "steps_per_s": 1.0 / median if median > 0 else None,
-        "step_cpu_ms": median * 1e3,
-        "newton_iterations_mean": float(np.mean(iterations)),
-        "load_average": list(os.getloadavg()),
-    }
 
 
 def run_train_benchmark(
